@@ -1,0 +1,136 @@
+"""The ``qpscale`` command line (typer).  The only module that prints or sets exit codes.
+
+Each subcommand prints a human summary, or one JSON object with ``--json``; field names
+follow the contract in SPEC.md.  Invalid input exits with status 2 and one line on stderr
+naming the parameter; a solver failure exits with status 3 and the solver's status.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable
+from functools import wraps
+from pathlib import Path
+from typing import Any, TypeVar
+
+import typer
+from rich.console import Console
+
+from . import __version__
+from .errors import InvalidDesign, QpscaleError, SolverFailure, SolverUnavailable
+from .tiling import Design, max_overlap_area, min_gap
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="3D mechanics of scaled skins: exact contact as a QP per load increment.")
+console = Console()
+err_console = Console(stderr=True)
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+EXIT_INVALID = 2
+EXIT_SOLVER = 3
+
+
+def _fail(code: int, message: str) -> None:
+    err_console.print(f"error: {message}", markup=False, highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def handles_errors(func: F) -> F:
+    """Map qpscale exceptions to one line on stderr and an exit status."""
+
+    @wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except InvalidDesign as exc:
+            _fail(EXIT_INVALID, str(exc))
+        except SolverUnavailable as exc:
+            _fail(EXIT_INVALID, str(exc))
+        except SolverFailure as exc:
+            _fail(EXIT_SOLVER, str(exc))
+        except QpscaleError as exc:
+            _fail(EXIT_SOLVER, str(exc))
+
+    return wrapper  # type: ignore[return-value]
+
+
+def emit(payload: dict[str, Any], as_json: bool, summary: Callable[[dict[str, Any]], None]) -> None:
+    """Print ``payload`` as one JSON object, or a human summary of it."""
+    if as_json:
+        sys.stdout.write(json.dumps(payload, allow_nan=False) + "\n")
+    else:
+        summary(payload)
+
+
+def _version(value: bool) -> None:
+    if value:
+        console.print(f"qpscale {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
+) -> None:
+    """3D mechanics of scaled skins."""
+
+
+# Options shared by the design-based commands; names follow SPEC.md.
+ShapeOpt = typer.Option("square", "--shape", help="triangle, square, trapezoid, dart or hexagon.")
+TilingOpt = typer.Option(None, "--tiling", help="arrayed or staggered (triangle, square, trapezoid).")
+SlantOpt = typer.Option(0.0, "--slant", help="Slant angle alpha from the vertical, degrees, [0, 90).")
+SlantDirOpt = typer.Option(0.0, "--slant-dir", help="Slant direction, degrees from +x (0, 45 or 90).")
+GapOpt = typer.Option(0.005, "--gap", help="Gap d between neighbouring bases, in L, >= 0.")
+ThicknessOpt = typer.Option(1.0, "--thickness", help="Scale thickness t, in L, > 0.")
+RingsOpt = typer.Option(2, "--rings", help="Rings of neighbours around the punctured scale (2: 5x5).")
+JsonOpt = typer.Option(False, "--json", help="Print one JSON object.")
+
+
+def make_design(shape: str, tiling: str | None, slant: float, slant_dir: float, gap: float,
+                thickness: float, rings: int) -> Design:
+    return Design(shape=shape, tiling=tiling, slant_deg=slant, slant_dir_deg=slant_dir, gap=gap,
+                  thickness=thickness, rings=rings)
+
+
+@app.command()
+@handles_errors
+def geometry(
+    shape: str = ShapeOpt, tiling: str | None = TilingOpt, slant: float = SlantOpt,
+    slant_dir: float = SlantDirOpt, gap: float = GapOpt, thickness: float = ThicknessOpt,
+    rings: int = RingsOpt, png: Path | None = typer.Option(None, "--png", help="Draw the patch to FILE."),
+    as_json: bool = JsonOpt,
+) -> None:
+    """Build a design's patch and check it: areas, gaps, overlaps, top-face offset."""
+    design = make_design(shape, tiling, slant, slant_dir, gap, thickness, rings)
+    patch = design.patch()
+    areas = [p.area for p in patch.polygons()]
+    payload = {
+        "shape": design.shape, "tiling": design.tiling, "base_area": float(areas[0]),
+        "base_area_spread": float(max(areas) - min(areas)), "n_scales": patch.n_scales,
+        "n_neighbour_pairs": int(len(patch.neighbours)), "n_contact_pairs": int(len(patch.contact_pairs)),
+        "min_gap": min_gap(patch) if patch.n_scales > 1 else None, "max_overlap_area": max_overlap_area(patch),
+        "top_offset": [float(v) for v in design.top_offset], "volume": patch.prism(0).volume,
+    }
+    if png is not None:
+        from .plotting import draw_patch
+
+        draw_patch(patch, png)
+        payload["png"] = str(png)
+
+    def summary(p: dict[str, Any]) -> None:
+        console.print(f"[bold]{p['shape']} ({p['tiling']})[/]: {p['n_scales']} scales, base area "
+                      f"{p['base_area']:.12g} L^2, min gap {p['min_gap']}, max overlap {p['max_overlap_area']:.3g}, "
+                      f"top offset ({p['top_offset'][0]:.4g}, {p['top_offset'][1]:.4g}) L")
+
+    emit(payload, as_json, summary)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
