@@ -7,7 +7,20 @@ from .tiling import DESIGNS, TILINGS_OF, Design, Patch, build_patch
 __version__ = "0.1.0"
 
 __all__ = [
-    "DESIGNS", "SHAPES", "TILINGS_OF", "Design", "InvalidDesign", "Patch", "Prism", "QpscaleError",
-    "QpscaleWarning", "SolverFailure", "SolverUnavailable", "base_polygon", "build_patch", "convex_pieces",
-    "rotation_matrix", "__version__",
+    "DESIGNS",
+    "SHAPES",
+    "TILINGS_OF",
+    "Design",
+    "InvalidDesign",
+    "Patch",
+    "Prism",
+    "QpscaleError",
+    "QpscaleWarning",
+    "SolverFailure",
+    "SolverUnavailable",
+    "base_polygon",
+    "build_patch",
+    "convex_pieces",
+    "rotation_matrix",
+    "__version__",
 ]

@@ -21,8 +21,11 @@ from . import __version__
 from .errors import InvalidDesign, QpscaleError, SolverFailure, SolverUnavailable
 from .tiling import Design, max_overlap_area, min_gap
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="3D mechanics of scaled skins: exact contact as a QP per load increment.")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="3D mechanics of scaled skins: exact contact as a QP per load increment.",
+)
 console = Console()
 err_console = Console(stderr=True)
 
@@ -37,6 +40,23 @@ def _fail(code: int, message: str) -> None:
     raise typer.Exit(code)
 
 
+# API parameter -> command-line flag, so the one-line error names what the user typed.
+FLAG_OF = {
+    "slant_deg": "--slant",
+    "slant_dir_deg": "--slant-dir",
+    "gap": "--gap",
+    "thickness": "--thickness",
+    "rings": "--rings",
+    "shape": "--shape",
+    "tiling": "--tiling",
+    "nu": "--nu",
+    "nu_s": "--nu",
+    "coupling": "--coupling-factor",
+    "phi_c_deg": "--phi-c",
+    "solver": "--solver",
+}
+
+
 def handles_errors(func: F) -> F:
     """Map qpscale exceptions to one line on stderr and an exit status."""
 
@@ -45,7 +65,8 @@ def handles_errors(func: F) -> F:
         try:
             return func(*args, **kwargs)
         except InvalidDesign as exc:
-            _fail(EXIT_INVALID, str(exc))
+            flag = FLAG_OF.get(exc.parameter, "--" + exc.parameter.replace("_", "-"))
+            _fail(EXIT_INVALID, f"{flag}: {exc}")
         except SolverUnavailable as exc:
             _fail(EXIT_INVALID, str(exc))
         except SolverFailure as exc:
@@ -72,7 +93,9 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _root(
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print the version."
+    ),
 ) -> None:
     """3D mechanics of scaled skins."""
 
@@ -88,18 +111,31 @@ RingsOpt = typer.Option(2, "--rings", help="Rings of neighbours around the punct
 JsonOpt = typer.Option(False, "--json", help="Print one JSON object.")
 
 
-def make_design(shape: str, tiling: str | None, slant: float, slant_dir: float, gap: float,
-                thickness: float, rings: int) -> Design:
-    return Design(shape=shape, tiling=tiling, slant_deg=slant, slant_dir_deg=slant_dir, gap=gap,
-                  thickness=thickness, rings=rings)
+def make_design(
+    shape: str, tiling: str | None, slant: float, slant_dir: float, gap: float, thickness: float, rings: int
+) -> Design:
+    return Design(
+        shape=shape,
+        tiling=tiling,
+        slant_deg=slant,
+        slant_dir_deg=slant_dir,
+        gap=gap,
+        thickness=thickness,
+        rings=rings,
+    )
 
 
 @app.command()
 @handles_errors
 def geometry(
-    shape: str = ShapeOpt, tiling: str | None = TilingOpt, slant: float = SlantOpt,
-    slant_dir: float = SlantDirOpt, gap: float = GapOpt, thickness: float = ThicknessOpt,
-    rings: int = RingsOpt, png: Path | None = typer.Option(None, "--png", help="Draw the patch to FILE."),
+    shape: str = ShapeOpt,
+    tiling: str | None = TilingOpt,
+    slant: float = SlantOpt,
+    slant_dir: float = SlantDirOpt,
+    gap: float = GapOpt,
+    thickness: float = ThicknessOpt,
+    rings: int = RingsOpt,
+    png: Path | None = typer.Option(None, "--png", help="Draw the patch to FILE."),
     as_json: bool = JsonOpt,
 ) -> None:
     """Build a design's patch and check it: areas, gaps, overlaps, top-face offset."""
@@ -107,11 +143,17 @@ def geometry(
     patch = design.patch()
     areas = [p.area for p in patch.polygons()]
     payload = {
-        "shape": design.shape, "tiling": design.tiling, "base_area": float(areas[0]),
-        "base_area_spread": float(max(areas) - min(areas)), "n_scales": patch.n_scales,
-        "n_neighbour_pairs": int(len(patch.neighbours)), "n_contact_pairs": int(len(patch.contact_pairs)),
-        "min_gap": min_gap(patch) if patch.n_scales > 1 else None, "max_overlap_area": max_overlap_area(patch),
-        "top_offset": [float(v) for v in design.top_offset], "volume": patch.prism(0).volume,
+        "shape": design.shape,
+        "tiling": design.tiling,
+        "base_area": float(areas[0]),
+        "base_area_spread": float(max(areas) - min(areas)),
+        "n_scales": patch.n_scales,
+        "n_neighbour_pairs": int(len(patch.neighbours)),
+        "n_contact_pairs": int(len(patch.contact_pairs)),
+        "min_gap": min_gap(patch) if patch.n_scales > 1 else None,
+        "max_overlap_area": max_overlap_area(patch),
+        "top_offset": [float(v) for v in design.top_offset],
+        "volume": patch.prism(0).volume,
     }
     if png is not None:
         from .plotting import draw_patch
@@ -120,9 +162,11 @@ def geometry(
         payload["png"] = str(png)
 
     def summary(p: dict[str, Any]) -> None:
-        console.print(f"[bold]{p['shape']} ({p['tiling']})[/]: {p['n_scales']} scales, base area "
-                      f"{p['base_area']:.12g} L^2, min gap {p['min_gap']}, max overlap {p['max_overlap_area']:.3g}, "
-                      f"top offset ({p['top_offset'][0]:.4g}, {p['top_offset'][1]:.4g}) L")
+        console.print(
+            f"[bold]{p['shape']} ({p['tiling']})[/]: {p['n_scales']} scales, base area "
+            f"{p['base_area']:.12g} L^2, min gap {p['min_gap']}, max overlap {p['max_overlap_area']:.3g}, "
+            f"top offset ({p['top_offset'][0]:.4g}, {p['top_offset'][1]:.4g}) L"
+        )
 
     emit(payload, as_json, summary)
 

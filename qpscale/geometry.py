@@ -11,7 +11,7 @@ centroid at the origin; a scale's reference point is the centroid of its base fa
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -74,7 +74,7 @@ def _raw_shape(shape: str) -> tuple[Array, list[Array]]:
     raise InvalidDesign("shape", shape, "{" + ", ".join(SHAPES) + "}")
 
 
-@lru_cache(maxsize=None)
+@cache
 def _shape_arrays(shape: str) -> tuple[Array, tuple[Array, ...]]:
     check_shape(shape)
     raw, pieces = _raw_shape(shape)

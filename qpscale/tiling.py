@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, replace
-from functools import cached_property, lru_cache
+from functools import cache, cached_property
 
 import numpy as np
 from shapely import STRtree
@@ -112,12 +112,21 @@ class Design:
 
 
 def inflated_polygon(shape: str, gap: float) -> Polygon:
-    """The base polygon offset outward by gap/2 with mitred corners (edge directions kept)."""
-    return Polygon(base_polygon(shape)).buffer(gap / 2.0, join_style="mitre", mitre_limit=1e3)
+    """The base polygon offset outward by gap/2 with mitred corners (edge directions kept).
+
+    Gaps below 1e-12 L are round-off: the base polygon itself is returned (GEOS mis-handles
+    sub-normal buffer distances).
+    """
+    poly = Polygon(base_polygon(shape))
+    if gap < 1e-12:
+        return poly
+    return poly.buffer(gap / 2.0, join_style="mitre", mitre_limit=1e3)
 
 
-@lru_cache(maxsize=None)
-def _lattice(shape: str, tiling: str, gap: float) -> tuple[Array, Array, tuple[tuple[float, float, float], ...]]:
+@cache
+def _lattice(
+    shape: str, tiling: str, gap: float
+) -> tuple[Array, Array, tuple[tuple[float, float, float], ...]]:
     """Lattice vectors a1, a2 and motif ((angle, cx, cy), ...) of a design.
 
     Derived from the inflated prototile (formulations/geometry.md, sec. 4): the inflated
@@ -155,7 +164,7 @@ def _site_polygon(shape: str, angle: float, centre: Array) -> Array:
     return rotate2d(base_polygon(shape), angle) + centre
 
 
-@lru_cache(maxsize=None)
+@cache
 def _neighbour_offsets(shape: str, tiling: str, gap: float) -> tuple[tuple[tuple[int, int, int], ...], ...]:
     """For each motif member k, the offsets (di, dj, m) of the scales adjacent to it."""
     a1, a2, motif = _lattice(shape, tiling, gap)
@@ -216,8 +225,11 @@ class Patch:
 
     def prism(self, i: int) -> Prism:
         """Scale ``i`` as one prism in its body frame (reference point at the origin)."""
-        return Prism(rotate2d(base_polygon(self.design.shape), self.angles[i]), self.design.thickness,
-                     self.design.top_offset)
+        return Prism(
+            rotate2d(base_polygon(self.design.shape), self.angles[i]),
+            self.design.thickness,
+            self.design.top_offset,
+        )
 
     def convex_prisms(self, i: int) -> list[Prism]:
         """Scale ``i`` as convex prisms (the dart as two) in its body frame."""
@@ -243,7 +255,7 @@ class Patch:
         return np.array(sorted(pairs), dtype=int).reshape(-1, 2)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _contact_offsets(
     shape: str, tiling: str, gap: float, thickness: float, slant_deg: float, slant_dir_deg: float
 ) -> tuple[tuple[tuple[int, int, int], ...], ...]:
@@ -307,8 +319,12 @@ def min_gap(patch: Patch) -> float:
 
 
 def max_overlap_area(patch: Patch) -> float:
-    """Largest overlap area between any two base polygons of the patch, in L^2."""
-    polys = patch.polygons()
+    """Largest overlap area between any two base polygons of the patch, in L^2.
+
+    Polygons are shrunk by 1e-10 L first: GEOS can mis-resolve two polygons that share an edge
+    exactly (d = 0), and overlaps thinner than that are round-off, not design errors.
+    """
+    polys = [p.buffer(-1e-10, join_style="mitre") for p in patch.polygons()]
     tree = STRtree(polys)
     worst = 0.0
     for i, p in enumerate(polys):

@@ -1,0 +1,70 @@
+"""The command line: JSON contract of SPEC.md and exit status 2 on bad input."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from qpscale import __version__
+from qpscale.cli import app
+
+runner = CliRunner()
+
+
+def run(*args: str):
+    return runner.invoke(app, list(args))
+
+
+def test_version():
+    result = run("--version")
+    assert result.exit_code == 0 and __version__ in result.stdout
+
+
+def test_geometry_json_contract():
+    result = run("geometry", "--json")
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    assert {"base_area", "n_scales", "min_gap", "max_overlap_area", "top_offset"} <= set(data)
+    assert data["n_scales"] == 25
+    assert data["base_area"] == pytest.approx(4.0, rel=1e-12)
+    assert data["min_gap"] == pytest.approx(0.005, abs=1e-9)
+    assert data["max_overlap_area"] == 0.0
+
+
+def test_geometry_slanted_offset_and_png(tmp_path):
+    png = tmp_path / "patch.png"
+    result = run(
+        "geometry", "--shape", "dart", "--slant", "60", "--slant-dir", "90", "--png", str(png), "--json"
+    )
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    # t tan(60 deg) along +y, t = 1.
+    assert data["top_offset"] == pytest.approx([0.0, 3**0.5], abs=1e-12)
+    assert png.stat().st_size > 1000
+
+
+def test_geometry_human_summary():
+    result = run("geometry", "--shape", "hexagon")
+    assert result.exit_code == 0 and "19 scales" in result.stdout
+
+
+@pytest.mark.parametrize(
+    "args,flag",
+    [
+        (["--shape", "circle"], "--shape"),
+        (["--shape", "hexagon", "--tiling", "arrayed"], "--tiling"),
+        (["--tiling", "spiral"], "--tiling"),
+        (["--slant", "90"], "--slant"),
+        (["--slant", "-5"], "--slant"),
+        (["--gap", "-0.01"], "--gap"),
+        (["--thickness", "0"], "--thickness"),
+        (["--rings", "-1"], "--rings"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(args, flag):
+    result = run("geometry", *args)
+    assert result.exit_code == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"error: {flag}")
