@@ -1,0 +1,111 @@
+"""Solver registry and the one entry point :func:`solve_qp` (formulations/increment-qp.md section 4).
+
+Backends are found at import: a missing optional package removes its keys from the registry
+instead of breaking ``import qpscale``.  Keys: ``"clarabel"``, ``"osqp"``, ``"cvxpy"`` and
+``"qpsolvers:<name>"`` for every solver qpsolvers reports installed.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from ..errors import SolverFailure, SolverUnavailable
+from ..qp import IncrementQP, IncrementResult, accept, backend_options, resolve_tolerance
+
+logger = logging.getLogger(__name__)
+
+#: Default backend: the fastest one that meets "high" accuracy on our problems (see the benchmark).
+DEFAULT_SOLVER = "clarabel"
+
+Backend = Callable[[IncrementQP, dict, Any], IncrementResult]
+
+
+def _load(module: str) -> Any | None:
+    try:
+        return importlib.import_module(f"{__name__}.{module}")
+    except ImportError as exc:  # the optional third-party package is missing
+        logger.debug("backend %s unavailable: %s", module, exc)
+        return None
+
+
+def _registry() -> dict[str, Backend]:
+    reg: dict[str, Backend] = {}
+    for key in ("clarabel", "osqp", "cvxpy"):
+        mod = _load(f"{key}_")
+        if mod is not None:
+            reg[key] = mod.solve
+    qps = _load("qpsolvers_")
+    if qps is not None:
+        for name in qps.installed():
+            reg[f"qpsolvers:{name}"] = (lambda n: lambda qp, opts, ws: qps.solve(qp, n, opts, ws))(name)
+    return reg
+
+
+_REGISTRY: dict[str, Backend] = _registry()
+
+
+def available_solvers() -> list[str]:
+    """Keys of the installed backends, direct ones first.
+
+    >>> "clarabel" in available_solvers()
+    True
+    """
+    return list(_REGISTRY)
+
+
+def solve_qp(
+    qp: IncrementQP,
+    solver: str = DEFAULT_SOLVER,
+    accuracy: str | float = "high",
+    check: bool = True,
+    warm_start: Any = None,
+    options: dict[str, Any] | None = None,
+) -> IncrementResult:
+    """Solve ``qp`` with the backend ``solver`` and verify the answer with our KKT residuals.
+
+    Parameters
+    ----------
+    qp : IncrementQP
+        The problem.
+    solver : str
+        A key of :func:`available_solvers`.
+    accuracy : {"high", "mid", "low"} or float
+        Absolute tolerance on every KKT residual: 1e-9, 1e-6, 1e-3, or the float given.
+    check : bool
+        If True a failed status or a residual above the tolerance raises; if False the result
+        comes back with ``found=False``.
+    warm_start : IncrementResult or ndarray (n,), optional
+        A previous solution; used by backends that can (OSQP, some qpsolvers), ignored otherwise.
+    options : dict, optional
+        Backend settings overriding the tolerance table (e.g. ``{"polishing": False}`` for OSQP).
+
+    Returns
+    -------
+    IncrementResult
+
+    Raises
+    ------
+    SolverUnavailable
+        Unknown or uninstalled backend; the message lists the available ones.
+    SolverFailure
+        With ``check=True``: the backend's status was not a success, or a residual exceeded the
+        tolerance (the residuals are in ``detail``).
+    """
+    if solver not in _REGISTRY:
+        raise SolverUnavailable(f"solver {solver!r} is not available; choose one of {available_solvers()}")
+    tol = resolve_tolerance(accuracy)
+    opts = {**backend_options(solver, tol), **(options or {})}
+    raw = _REGISTRY[solver](qp, opts, warm_start)
+    result = accept(raw, tol)
+    if check and not result.found:
+        res = result.residuals
+        detail = "no solution returned" if res is None else ", ".join(f"{k}={v:.3g}" for k, v in res.items())
+        detail = f"{detail}; tolerance {tol:g}; rejected by {result.extras.get('rejected_by')}"
+        raise SolverFailure(solver, result.status, detail=detail)
+    return result
+
+
+__all__ = ["DEFAULT_SOLVER", "available_solvers", "solve_qp"]
