@@ -1,0 +1,279 @@
+"""Contact between rigid scales: penetration, contact sets, gap Jacobians and contact forces.
+
+Implements formulations/contact.md: the exact signed separation of convex pieces (section 2,
+eqs. (3)-(7), in :mod:`qpscale.contact_sat`), the contact points (section 3, eqs. (8)-(13), in
+:mod:`qpscale.contact_clip`), the linearised gap g + J dq (section 4, eqs. (14)-(17)) and the
+generalised contact forces J' lam (section 5, eq. (18)).
+
+Sign conventions: the normal n_k of contact point k points from scale a to scale b, the gap
+g_k = n_k . (xb_k - xa_k) is positive when apart, and a multiplier lam_k >= 0 pushes b along
++n_k and a along -n_k.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .contact_clip import KIND_NAMES, Points, edge_points, face_points
+from .contact_sat import World, bodies_of, place, separate, tangents
+from .errors import InvalidDesign
+from .geometry import Array
+from .tiling import Patch
+
+MODES = ("full", "vertex")
+
+
+@dataclass(frozen=True)
+class ContactSettings:
+    """Options of the contact detection.
+
+    Parameters
+    ----------
+    margin : float
+        Pairs and points whose separation is below this enter the contact set, in L, > 0.
+    tie_tol : float
+        Axes whose separation is within this of the best all contribute, in L, >= 0.
+    sampling : int
+        Extra equally spaced points on every clipped edge (completeness checks), >= 0.
+    mode : str
+        ``"full"`` (vertex-face, edge crossings, edge-edge, face-face) or ``"vertex"`` (only
+        polyhedron vertices against faces: an incomplete node-to-surface set).
+    """
+
+    margin: float = 0.1
+    tie_tol: float = 1e-9
+    sampling: int = 0
+    mode: str = "full"
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.margin) and 0.0 < self.margin <= 10.0):
+            raise InvalidDesign("margin", self.margin, "(0, 10] (in L)")
+        if not (np.isfinite(self.tie_tol) and 0.0 <= self.tie_tol < self.margin):
+            raise InvalidDesign("tie_tol", self.tie_tol, "[0, margin) (in L)")
+        if not (int(self.sampling) == self.sampling and 0 <= self.sampling <= 1000):
+            raise InvalidDesign("sampling", self.sampling, "integers in [0, 1000]")
+        if self.mode not in MODES:
+            raise InvalidDesign("mode", self.mode, "{" + ", ".join(MODES) + "}")
+
+
+@dataclass(frozen=True)
+class ContactSet:
+    """Contact points of a configuration; row k is one linearised constraint g_k + J_k dq >= 0.
+
+    Attributes
+    ----------
+    a, b : ndarray (m,) of int
+        Scale indices (a < b for the patch's candidate pairs).
+    piece_a, piece_b : ndarray (m,) of int
+        Convex piece indices (``patch.convex_prisms``).
+    normal : ndarray (m, 3)
+        Unit normal from a to b.
+    xa, xb : ndarray (m, 3)
+        Material points on a and on b, current world coordinates, in L.
+    gap : ndarray (m,)
+        g_k = n_k . (xb_k - xa_k), in L (negative: penetration).
+    kind : ndarray (m,) of int
+        Index into :data:`KIND_NAMES`.
+    labels : tuple of str
+        ``"a:pa-b:pb <feature>"`` naming the reference/incident faces or the edges of each row.
+    q : ndarray (n, 5)
+        Configuration the set was detected at.
+    centre : ndarray (n, 3)
+        Current reference points c_i at that configuration, in L.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    piece_a: np.ndarray
+    piece_b: np.ndarray
+    normal: Array
+    xa: Array
+    xb: Array
+    gap: Array
+    kind: np.ndarray
+    labels: tuple[str, ...]
+    q: Array
+    centre: Array
+
+    def __post_init__(self) -> None:
+        m = len(self.a)
+        for name in ("b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kind", "labels"):
+            if len(getattr(self, name)) != m:
+                raise InvalidDesign(name, len(getattr(self, name)), f"length {m} (one row per contact point)")
+
+    @property
+    def m(self) -> int:
+        return int(len(self.a))
+
+    @property
+    def n_scales(self) -> int:
+        return int(self.q.shape[0])
+
+    @property
+    def kind_names(self) -> tuple[str, ...]:
+        return tuple(KIND_NAMES[k] for k in self.kind.tolist())
+
+
+def _check_q(patch: Patch, q: Array) -> Array:
+    q = np.asarray(q, dtype=float)
+    if q.shape != (patch.n_scales, 5) or not np.all(np.isfinite(q)):
+        raise InvalidDesign("q", q.shape, f"finite array of shape ({patch.n_scales}, 5)")
+    return q
+
+
+def _pairs(patch: Patch, pairs: np.ndarray | None) -> np.ndarray:
+    out = patch.contact_pairs if pairs is None else np.asarray(pairs, dtype=int).reshape(-1, 2)
+    if len(out) and (out.min() < 0 or out.max() >= patch.n_scales or np.any(out[:, 0] == out[:, 1])):
+        raise InvalidDesign(
+            "pairs", out.tolist(), f"pairs of distinct scale indices in [0, {patch.n_scales})"
+        )
+    return out
+
+
+def penetration(patch: Patch, q: Array, pairs: np.ndarray | None = None) -> float:
+    """Largest overlap depth between convex pieces of the candidate pairs, in L (>= 0).
+
+    The depth is minus the signed separation of eq. (5), exact for overlapping convex pieces.
+
+    >>> from qpscale import Design
+    >>> p = Design(rings=1).patch()
+    >>> penetration(p, np.zeros((p.n_scales, 5)))
+    0.0
+    """
+    q = _check_q(patch, q)
+    pairs = _pairs(patch, pairs)
+    if len(pairs) == 0:
+        return 0.0
+    sat = separate(place(patch, q), pairs)
+    return float(max(0.0, -sat.sep.min()))
+
+
+def detect_contacts(
+    patch: Patch, q: Array, settings: ContactSettings | None = None, pairs: np.ndarray | None = None
+) -> ContactSet:
+    """Contact points of every candidate pair closer than ``settings.margin`` (section 3).
+
+    Parameters
+    ----------
+    patch : Patch
+    q : ndarray (n, 5)
+        DOFs [u_x, u_y, u_z, phi_x, phi_y] per scale (L, radians).
+    settings : ContactSettings, optional
+    pairs : ndarray (S, 2) of int, optional
+        Candidate scale pairs; default ``patch.contact_pairs``.
+
+    Returns
+    -------
+    ContactSet
+
+    >>> from qpscale import Design
+    >>> p = Design(rings=1).patch()
+    >>> cs = detect_contacts(p, np.zeros((p.n_scales, 5)))
+    >>> bool(np.allclose(cs.gap, 0.005))
+    True
+    """
+    settings = settings or ContactSettings()
+    q = _check_q(patch, q)
+    pairs = _pairs(patch, pairs)
+    world = place(patch, q)
+    if len(pairs) == 0:
+        return _assemble(world, q, None, [], settings)
+    bodies = bodies_of(patch)
+    sat = separate(world, pairs)
+    active = sat.sep < settings.margin
+    best_face = np.maximum(sat.face_a.max(axis=1), sat.face_b.max(axis=1))
+    # Face axes win ties with edge axes: their clipping already holds the edge crossings.
+    use_edge = sat.edge.reshape(len(sat.sep), -1).max(axis=1) > best_face + settings.tie_tol
+    parts = [
+        face_points(world, sat, bodies, active & ~use_edge, settings),
+        edge_points(world, sat, bodies, active & use_edge, settings),
+    ]
+    return _assemble(world, q, sat, parts, settings)
+
+
+def _assemble(world: World, q: Array, sat, parts: list[Points], settings: ContactSettings) -> ContactSet:
+    if not parts or sum(len(p.pp) for p in parts) == 0:
+        e, z3 = np.zeros(0, dtype=int), np.zeros((0, 3))
+        return ContactSet(e, e, e, e, z3, z3, z3, np.zeros(0), e, (), q.copy(), world.centre.copy())
+    pp = np.concatenate([p.pp for p in parts])
+    normal, xa, xb = (np.concatenate([getattr(p, k) for p in parts]) for k in ("normal", "xa", "xb"))
+    gap = np.concatenate([p.gap for p in parts])
+    kind = np.concatenate([p.kind for p in parts])
+    labels = [lab for p in parts for lab in p.label]
+    keep = _unique_rows(pp, normal, xa, xb)
+    a, b, pa, pb = sat.a[pp], sat.b[pp], sat.pa[pp], sat.pb[pp]
+    names = tuple(f"{a[k]}:{pa[k]}-{b[k]}:{pb[k]} {labels[k]}" for k in keep.tolist())
+    return ContactSet(
+        a[keep],
+        b[keep],
+        pa[keep],
+        pb[keep],
+        normal[keep],
+        xa[keep],
+        xb[keep],
+        gap[keep],
+        kind[keep],
+        names,
+        q.copy(),
+        world.centre.copy(),
+    )
+
+
+def _unique_rows(pp: np.ndarray, normal: Array, xa: Array, xb: Array, tol: float = 1e-9) -> np.ndarray:
+    """Indices of the first of every group of coincident points (same pieces, points and normal)."""
+    keep = []
+    order = np.argsort(pp, kind="stable")
+    bounds = np.flatnonzero(np.diff(pp[order])) + 1
+    for grp in np.split(order, bounds):
+        feat = np.hstack([normal[grp], xa[grp], xb[grp]])
+        d = np.abs(feat[:, None, :] - feat[None, :, :]).max(axis=2)
+        dup = np.tril(d < tol, k=-1).any(axis=1)
+        keep.extend(grp[~dup].tolist())
+    return np.sort(np.array(keep, dtype=int))
+
+
+def _dof_rows(cs: ContactSet, q: Array, centre: Array) -> tuple[Array, Array]:
+    """dg/dq_b and dg/dq_a, each ``(m, 5)``: eq. (16)."""
+    T = tangents(q[:, 3:5])
+    n = cs.normal
+    rb = np.cross(cs.xb - centre[cs.b], n)
+    ra = np.cross(cs.xa - centre[cs.a], n)
+    wb = np.hstack([n, np.einsum("mji,mj->mi", T[cs.b], rb)])
+    wa = np.hstack([n, np.einsum("mji,mj->mi", T[cs.a], ra)])
+    return wb, -wa
+
+
+def gap_jacobian(cs: ContactSet, patch: Patch, q: Array) -> sp.csr_matrix:
+    """Jacobian ``(m, 5 n)`` of the gaps: dg_k = n_k . (dxb_k - dxa_k), eqs. (14)-(17).
+
+    Columns follow scale-major DOF order [u_x, u_y, u_z, phi_x, phi_y] per scale.  Built from
+    triplets (10 entries per row).
+    """
+    q = _check_q(patch, q)
+    centre = np.zeros((patch.n_scales, 3))
+    centre[:, :2] = patch.centroids
+    centre += q[:, :3]
+    wb, wa = _dof_rows(cs, q, centre)
+    rows = np.repeat(np.arange(cs.m), 10)
+    cols = np.hstack([5 * cs.b[:, None] + np.arange(5), 5 * cs.a[:, None] + np.arange(5)]).ravel()
+    vals = np.hstack([wb, wa]).ravel()
+    return sp.csr_matrix((vals, (rows, cols)), shape=(cs.m, 5 * patch.n_scales))
+
+
+def contact_forces(cs: ContactSet, lam: Array) -> Array:
+    """Generalised contact forces ``(n, 5)`` of multipliers ``lam`` (m,), eq. (18): J' lam.
+
+    Row i holds the force on scale i and the work-conjugate of its rotation increments,
+    T_i' (sum of r x F), at the configuration the set was detected at.
+    """
+    lam = np.asarray(lam, dtype=float)
+    if lam.shape != (cs.m,):
+        raise InvalidDesign("lam", lam.shape, f"shape ({cs.m},)")
+    wb, wa = _dof_rows(cs, cs.q, cs.centre)
+    out = np.zeros((cs.n_scales, 5))
+    np.add.at(out, cs.b, lam[:, None] * wb)
+    np.add.at(out, cs.a, lam[:, None] * wa)
+    return out

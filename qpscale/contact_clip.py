@@ -1,0 +1,232 @@
+"""Contact points of nearly touching convex pieces: face clipping and edge-edge closest points.
+
+Implements formulations/contact.md section 3, eqs. (8)-(13): for a face axis, the incident face
+of the other piece clipped against the side planes of the reference face (Sutherland-Hodgman,
+vectorised over every reference/incident face couple), each clipped vertex projected onto the
+reference plane; for an edge-edge axis, the closest points of the two supporting edges.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .contact_sat import SAT, Bodies, World
+from .geometry import Array
+
+# Point kinds (ContactSet.kind); formulations/contact.md, section 3.4.
+VERTEX_FACE, CROSSING, EDGE_EDGE, FACE_FACE, SAMPLE = range(5)
+KIND_NAMES = ("vertex-face", "edge-crossing", "edge-edge", "face-face", "sample")
+# A point this far outside a side plane still counts as inside (round-off of coplanar faces).
+_CLIP_EPS = 1e-12
+# Incident faces whose normals are this close (in cosine) to the most anti-parallel one tie.
+_FACE_TIE = 1e-9
+
+
+@dataclass(frozen=True)
+class Points:
+    """Raw contact points before de-duplication (one row per point, see ContactSet)."""
+
+    pp: np.ndarray
+    normal: Array
+    xa: Array
+    xb: Array
+    gap: Array
+    kind: np.ndarray
+    label: list[str]
+
+
+def clip(
+    poly: Array, count: np.ndarray, normals: Array, offsets: Array
+) -> tuple[Array, np.ndarray, np.ndarray]:
+    """Clip convex polygons by half-spaces ``s . x <= o`` (Sutherland-Hodgman, eq. (10)).
+
+    Parameters
+    ----------
+    poly : ndarray (T, M, 3)
+        Polygon vertices in order; rows beyond ``count`` are ignored.
+    count : ndarray (T,) of int
+    normals : ndarray (T, K, 3)
+        Outward unit normals of the clipping planes (a zero row is no plane).
+    offsets : ndarray (T, K)
+
+    Returns
+    -------
+    poly, count, code
+        Clipped polygons, their vertex counts, and a code per vertex: the original vertex
+        index (< 100), or ``100 + 10 k + e`` for the crossing of plane k (e = 0 leaving, 1 entering).
+    """
+    T, M = poly.shape[:2]
+    code = np.broadcast_to(np.arange(M), (T, M)).copy()
+    for k in range(normals.shape[1]):
+        d = np.einsum("tmk,tk->tm", poly, normals[:, k]) - offsets[:, k][:, None] - _CLIP_EPS
+        idx = np.arange(poly.shape[1])[None, :]
+        valid = idx < count[:, None]
+        nxt = np.where(idx + 1 < count[:, None], idx + 1, 0)
+        dj = np.take_along_axis(d, nxt, axis=1)
+        Pj = np.take_along_axis(poly, nxt[..., None], axis=1)
+        inside, inside_j = d <= 0.0, dj <= 0.0
+        cross = valid & (inside != inside_j)
+        denom = np.where(cross, d - dj, 1.0)
+        t = np.clip(np.where(cross, d / denom, 0.0), 0.0, 1.0)
+        X = poly + t[..., None] * (Pj - poly)
+        cand = np.stack([poly, X], axis=2).reshape(T, -1, 3)
+        keep = np.stack([valid & inside, cross], axis=2).reshape(T, -1)
+        codes = np.stack([code, 100 + 10 * k + (~inside).astype(int)], axis=2).reshape(T, -1)
+        order = np.argsort(~keep, axis=1, kind="stable")
+        count = keep.sum(axis=1)
+        width = max(int(count.max(initial=0)), 1)
+        order = order[:, :width]
+        poly = np.take_along_axis(cand, order[..., None], axis=1)
+        code = np.take_along_axis(codes, order, axis=1)
+    return poly, count, code
+
+
+def _face_tasks(sat: SAT, active: np.ndarray, tie_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(piece pair, reference side 0=a/1=b, reference face) of every tied best face axis, eq. (8)."""
+    best = np.maximum(sat.face_a.max(axis=1), sat.face_b.max(axis=1))[:, None] - tie_tol
+    out = []
+    for side, seps in enumerate((sat.face_a, sat.face_b)):
+        p, f = np.nonzero((seps >= best) & active[:, None])
+        out.append((p, np.full(len(p), side), f))
+    return tuple(np.concatenate(x) for x in zip(*out))  # type: ignore[return-value]
+
+
+def _gather_faces(V: Array, bodies: Bodies, f: np.ndarray) -> tuple[Array, np.ndarray]:
+    idx = bodies.faces[f]
+    poly = np.take_along_axis(V, np.where(idx < 0, 0, idx)[..., None], axis=1)
+    return poly, bodies.face_size[f]
+
+
+def face_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, settings) -> Points:
+    """Contact points of every face axis within ``settings.tie_tol`` of the best one (eqs. (8)-(12))."""
+    p, side, f = _face_tasks(sat, active, settings.tie_tol)
+    VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
+    NA, NB = world.normals[sat.a[p], sat.pa[p]], world.normals[sat.b[p], sat.pb[p]]
+    on_a = (side == 0)[:, None, None]
+    Vref, Vinc = np.where(on_a, VA, VB), np.where(on_a, VB, VA)
+    Nref, Ninc = np.where(on_a, NA, NB), np.where(on_a, NB, NA)
+    n_ref = Nref[np.arange(len(p)), f]
+    dots = np.einsum("tfk,tk->tf", Ninc, n_ref)
+    t, g = np.nonzero(dots <= dots.min(axis=1, initial=1.0)[:, None] + _FACE_TIE)
+    ref_poly, ref_n = _gather_faces(Vref[t], bodies, f[t])
+    inc_poly, inc_n = _gather_faces(Vinc[t], bodies, g)
+    n_ref = n_ref[t]
+    nxt = np.roll(ref_poly, -1, axis=1)
+    nxt[np.arange(len(t)), ref_n - 1] = ref_poly[:, 0]
+    s = np.cross(nxt - ref_poly, n_ref[:, None, :])
+    s_norm = np.linalg.norm(s, axis=-1, keepdims=True)
+    s = np.where(
+        np.arange(s.shape[1])[None, :, None] < ref_n[:, None, None], s / np.maximum(s_norm, 1e-300), 0.0
+    )
+    pts, cnt, code = clip(inc_poly, inc_n, s, np.einsum("tkj,tkj->tk", s, ref_poly))
+    if settings.sampling > 0:
+        pts, cnt, code = _sample(pts, cnt, code, settings.sampling)
+    sep = np.einsum("tmk,tk->tm", pts - ref_poly[:, :1], n_ref)
+    parallel = dots[t, g] < -1.0 + 1e-9
+    kind = np.where(code < 100, np.where(parallel[:, None], FACE_FACE, VERTEX_FACE), CROSSING)
+    kind = np.where(code < 0, SAMPLE, kind)
+    keep = (np.arange(pts.shape[1])[None, :] < cnt[:, None]) & (sep < settings.margin)
+    if settings.mode == "vertex":
+        keep &= (code >= 0) & (code < 100)
+    ti, mi = np.nonzero(keep)
+    return _face_records(p[t], side[t], f[t], g, n_ref, pts, sep, kind, code, ti, mi)
+
+
+def _face_records(p, side, f, g, n_ref, pts, sep, kind, code, ti, mi) -> Points:
+    x, s = pts[ti, mi], sep[ti, mi]
+    ref_a = side[ti] == 0
+    n = np.where(ref_a[:, None], n_ref[ti], -n_ref[ti])
+    proj = x - s[:, None] * n_ref[ti]
+    xa = np.where(ref_a[:, None], proj, x)
+    xb = np.where(ref_a[:, None], x, proj)
+    labels = [
+        f"F{'ab'[sd]}{ff}/{gg}:{'v' if c < 100 else 'x'}{c}"
+        for sd, ff, gg, c in zip(side[ti].tolist(), f[ti].tolist(), g[ti].tolist(), code[ti, mi].tolist())
+    ]
+    return Points(p[ti], n, xa, xb, s, kind[ti, mi], labels)
+
+
+def _sample(pts: Array, cnt: np.ndarray, code: np.ndarray, s: int) -> tuple[Array, np.ndarray, np.ndarray]:
+    """Add ``s`` equally spaced points on every edge of each clipped polygon (code -1)."""
+    T, M = code.shape
+    idx = np.arange(M)[None, :]
+    nxt = np.where(idx + 1 < cnt[:, None], idx + 1, 0)
+    Pj = np.take_along_axis(pts, nxt[..., None], axis=1)
+    frac = np.arange(1, s + 1) / (s + 1.0)
+    extra = pts[:, :, None, :] + frac[None, None, :, None] * (Pj - pts)[:, :, None, :]
+    # A two-point polygon is a segment: its closing edge repeats the first one.
+    ok = (idx < cnt[:, None]) & ((cnt[:, None] > 2) | (idx == 0)) & (cnt[:, None] > 1)
+    ok = np.repeat(ok, s, axis=1)
+    extra = extra.reshape(T, M * s, 3)
+    all_pts = np.concatenate([pts, extra], axis=1)
+    valid = np.concatenate([idx < cnt[:, None], ok], axis=1)
+    codes = np.concatenate([code, -np.ones((T, M * s), dtype=int)], axis=1)
+    order = np.argsort(~valid, axis=1, kind="stable")
+    return (
+        np.take_along_axis(all_pts, order[..., None], axis=1),
+        valid.sum(axis=1),
+        np.take_along_axis(codes, order, axis=1),
+    )
+
+
+def segment_closest(p1: Array, q1: Array, p2: Array, q2: Array) -> tuple[Array, Array]:
+    """Closest points of segments [p1, q1] and [p2, q2] (non-degenerate, eq. (13))."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e, f = d1 @ d1, d2 @ d2, d2 @ r
+    c, b = d1 @ r, d1 @ d2
+    den = a * e - b * b
+    s = np.clip((b * f - c * e) / den, 0.0, 1.0) if den > 1e-14 * a * e else 0.0
+    t = (b * s + f) / e
+    if t < 0.0 or t > 1.0:
+        t = float(np.clip(t, 0.0, 1.0))
+        s = float(np.clip((t * b - c) / a, 0.0, 1.0))
+    return p1 + s * d1, p2 + t * d2
+
+
+def edge_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, settings) -> Points:
+    """Closest points of the supporting edges for every tied best edge axis (eq. (13))."""
+    rows: dict[str, list] = {k: [] for k in ("pp", "normal", "xa", "xb", "gap", "kind", "label")}
+    if settings.mode == "vertex":
+        return Points(
+            np.zeros(0, int),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
+            np.zeros(0),
+            np.zeros(0, int),
+            [],
+        )
+    flat = sat.edge.reshape(len(sat.sep), -1)
+    for p in np.nonzero(active)[0]:
+        VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
+        for ci, cj in zip(*np.nonzero(sat.edge[p] >= flat[p].max() - settings.tie_tol)):
+            u = sat.edge_axis[p, ci, cj]
+            ea = _support_edges(VA, bodies, ci, u)
+            eb = _support_edges(VB, bodies, cj, -u)
+            for i in ea:
+                for j in eb:
+                    pa, pb = bodies.edges[i], bodies.edges[j]
+                    xa, xb = segment_closest(VA[pa[0]], VA[pa[1]], VB[pb[0]], VB[pb[1]])
+                    gap = float(u @ (xb - xa))
+                    if gap < settings.margin:
+                        for key, val in zip(rows, (p, u, xa, xb, gap, EDGE_EDGE, f"E{i}/{j}")):
+                            rows[key].append(val)
+    return Points(
+        np.array(rows["pp"], dtype=int),
+        np.array(rows["normal"]).reshape(-1, 3),
+        np.array(rows["xa"]).reshape(-1, 3),
+        np.array(rows["xb"]).reshape(-1, 3),
+        np.array(rows["gap"], dtype=float),
+        np.array(rows["kind"], dtype=int),
+        rows["label"],
+    )
+
+
+def _support_edges(V: Array, bodies: Bodies, cls: int, u: Array) -> np.ndarray:
+    """Edges of class ``cls`` lying in the supporting plane of V in direction u."""
+    e = np.nonzero(bodies.edge_class == cls)[0]
+    h = V @ u
+    top = h[bodies.edges[e]].min(axis=1)
+    return e[top >= h.max() - 1e-9 * max(1.0, float(np.abs(h).max()))]

@@ -1,0 +1,219 @@
+"""Placed convex pieces of the scales and the separating-axis test between them.
+
+Implements formulations/contact.md sections 1-2, eqs. (1)-(7): the exact rigid placement
+x = c + R(phi) X of every convex piece, and the signed separation of two convex polyhedra as
+the largest separation over the face normals of both and the cross products of their edge
+directions.  Everything is vectorised over all piece pairs of a patch at once.
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import Array
+from .tiling import Patch
+
+# Edge pairs whose unit directions have |d_a x d_b| below this (sine of their angle) give no axis.
+PARALLEL_SIN = 1e-6
+
+_CACHE: dict[int, tuple[weakref.ref, Bodies]] = {}
+
+
+@dataclass(frozen=True)
+class Bodies:
+    """Body-frame geometry of every convex piece of every scale (shared topology).
+
+    Attributes
+    ----------
+    verts : ndarray (n, P, nv, 3)
+        Vertices of piece p of scale i relative to its reference point, in L.
+    normals : ndarray (n, P, nf, 3)
+        Outward unit face normals.
+    dirs : ndarray (n, P, nc, 3)
+        One unit direction per class of parallel edges.
+    faces : ndarray (nf, fmax) of int
+        Vertex indices of each face, counter-clockwise from outside, padded with -1.
+    face_size : ndarray (nf,) of int
+    edges : ndarray (ne, 2) of int
+    edge_class : ndarray (ne,) of int
+    """
+
+    verts: Array
+    normals: Array
+    dirs: Array
+    faces: np.ndarray
+    face_size: np.ndarray
+    edges: np.ndarray
+    edge_class: np.ndarray
+
+
+def _edge_classes(verts: Array, edges: np.ndarray) -> tuple[np.ndarray, list[int]]:
+    d = verts[edges[:, 1]] - verts[edges[:, 0]]
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    cls = -np.ones(len(edges), dtype=int)
+    reps: list[int] = []
+    for e in range(len(edges)):
+        for c, r in enumerate(reps):
+            if np.linalg.norm(np.cross(d[e], d[r])) < 1e-9:
+                cls[e] = c
+                break
+        else:
+            cls[e] = len(reps)
+            reps.append(e)
+    return cls, reps
+
+
+def bodies_of(patch: Patch) -> Bodies:
+    """Body-frame piece geometry of a patch (cached per patch object)."""
+    hit = _CACHE.get(id(patch))
+    if hit is not None and hit[0]() is patch:
+        return hit[1]
+    prisms = [patch.convex_prisms(i) for i in range(patch.n_scales)]
+    first = prisms[0][0]
+    faces_list = first.faces
+    fmax = max(len(f) for f in faces_list)
+    faces = -np.ones((len(faces_list), fmax), dtype=int)
+    for k, f in enumerate(faces_list):
+        faces[k, : len(f)] = f
+    edges = np.array(first.edges, dtype=int)
+    cls, reps = _edge_classes(first.vertices, edges)
+    verts = np.array([[p.vertices for p in ps] for ps in prisms])
+    normals = np.array([[p.face_normals for p in ps] for ps in prisms])
+    d = verts[:, :, edges[reps, 1]] - verts[:, :, edges[reps, 0]]
+    dirs = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    out = Bodies(verts, normals, dirs, faces, np.array([len(f) for f in faces_list]), edges, cls)
+    _CACHE[id(patch)] = (weakref.ref(patch), out)
+    return out
+
+
+def rotations(phi: Array) -> Array:
+    """Rotation matrices ``(n, 3, 3)`` of rotation vectors ``(phi_x, phi_y, 0)``, Rodrigues' formula.
+
+    Vectorised twin of :func:`qpscale.geometry.rotation_matrix` (same Taylor switch at 1e-8).
+    """
+    W = _skew(phi)
+    a = np.hypot(phi[:, 0], phi[:, 1])
+    small = a < 1e-8
+    a_safe = np.where(small, 1.0, a)
+    s1 = np.where(small, 1.0 - a * a / 6.0, np.sin(a_safe) / a_safe)
+    s2 = np.where(small, 0.5 - a * a / 24.0, (1.0 - np.cos(a_safe)) / a_safe**2)
+    return np.eye(3) + s1[:, None, None] * W + s2[:, None, None] * (W @ W)
+
+
+def tangents(phi: Array) -> Array:
+    """Tangent operators ``(n, 3, 2)``: omega = T dphi (vectorised :func:`geometry.tangent_operator`)."""
+    W = _skew(phi)
+    a = np.hypot(phi[:, 0], phi[:, 1])
+    small = a < 1e-6
+    a_safe = np.where(small, 1.0, a)
+    c1 = np.where(small, 0.5, (1.0 - np.cos(a_safe)) / a_safe**2)
+    c2 = np.where(small, 1.0 / 6.0, (a_safe - np.sin(a_safe)) / a_safe**3)
+    T = np.eye(3) + c1[:, None, None] * W + c2[:, None, None] * (W @ W)
+    return T[:, :, :2]
+
+
+def _skew(phi: Array) -> Array:
+    W = np.zeros((phi.shape[0], 3, 3))
+    W[:, 0, 2], W[:, 2, 0] = phi[:, 1], -phi[:, 1]
+    W[:, 1, 2], W[:, 2, 1] = -phi[:, 0], phi[:, 0]
+    return W
+
+
+@dataclass(frozen=True)
+class World:
+    """Current placement of every piece: eq. (1) applied to :class:`Bodies`.
+
+    Attributes
+    ----------
+    centre : ndarray (n, 3)
+        Current reference points c_i = (C_i, 0) + u_i, in L.
+    R : ndarray (n, 3, 3)
+    verts, normals, dirs : ndarray (n, P, ., 3)
+        World vertices, outward normals and edge-class directions.
+    """
+
+    centre: Array
+    R: Array
+    verts: Array
+    normals: Array
+    dirs: Array
+
+
+def place(patch: Patch, q: Array) -> World:
+    """Place every convex piece of the patch in configuration ``q`` (n, 5)."""
+    b = bodies_of(patch)
+    centre = np.zeros((patch.n_scales, 3))
+    centre[:, :2] = patch.centroids
+    centre += q[:, :3]
+    R = rotations(q[:, 3:5])
+    verts = np.einsum("ijk,ipvk->ipvj", R, b.verts) + centre[:, None, None, :]
+    normals = np.einsum("ijk,ipvk->ipvj", R, b.normals)
+    dirs = np.einsum("ijk,ipvk->ipvj", R, b.dirs)
+    return World(centre, R, verts, normals, dirs)
+
+
+@dataclass(frozen=True)
+class SAT:
+    """Separations of every piece pair (a, pa) - (b, pb) along every candidate axis.
+
+    Attributes
+    ----------
+    a, pa, b, pb : ndarray (P,) of int
+        Scale and piece indices of each piece pair.
+    face_a : ndarray (P, nf)
+        Separation along the outward normals of a's faces (axis from a to b), eq. (3).
+    face_b : ndarray (P, nf)
+        Separation along the outward normals of b's faces (axis from a to b is minus that normal).
+    edge : ndarray (P, nc, nc)
+        Separation along the edge-pair axes (-inf for near-parallel edges), eq. (4).
+    edge_axis : ndarray (P, nc, nc, 3)
+        Those axes as unit vectors oriented from a to b.
+    sep : ndarray (P,)
+        Signed separation, eq. (5): positive apart, minus the overlap depth if overlapping.
+    """
+
+    a: np.ndarray
+    pa: np.ndarray
+    b: np.ndarray
+    pb: np.ndarray
+    face_a: Array
+    face_b: Array
+    edge: Array
+    edge_axis: Array
+    sep: Array
+
+
+def piece_pairs(world: World, pairs: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Expand scale pairs ``(S, 2)`` into every combination of their convex pieces."""
+    n_p = world.verts.shape[1]
+    pa, pb = np.meshgrid(np.arange(n_p), np.arange(n_p), indexing="ij")
+    a = np.repeat(pairs[:, 0], n_p * n_p)
+    b = np.repeat(pairs[:, 1], n_p * n_p)
+    return a, np.tile(pa.ravel(), len(pairs)), b, np.tile(pb.ravel(), len(pairs))
+
+
+def separate(world: World, pairs: np.ndarray) -> SAT:
+    """Separating-axis test over all piece pairs of the scale pairs ``(S, 2)``."""
+    a, pa, b, pb = piece_pairs(world, pairs)
+    VA, VB = world.verts[a, pa], world.verts[b, pb]
+    NA, NB = world.normals[a, pa], world.normals[b, pb]
+    pAA, pAB = np.einsum("pfk,pvk->pfv", NA, VA), np.einsum("pfk,pvk->pfv", NA, VB)
+    face_a = pAB.min(axis=2) - pAA.max(axis=2)
+    pBA, pBB = np.einsum("pfk,pvk->pfv", NB, VA), np.einsum("pfk,pvk->pfv", NB, VB)
+    face_b = pBA.min(axis=2) - pBB.max(axis=2)
+    U = np.cross(world.dirs[a, pa][:, :, None, :], world.dirs[b, pb][:, None, :, :])
+    norm = np.linalg.norm(U, axis=-1)
+    valid = norm > PARALLEL_SIN
+    U = U / np.where(valid, norm, 1.0)[..., None]
+    uA, uB = np.einsum("pijk,pvk->pijv", U, VA), np.einsum("pijk,pvk->pijv", U, VB)
+    s_plus = uB.min(axis=3) - uA.max(axis=3)
+    s_minus = uA.min(axis=3) - uB.max(axis=3)
+    sign = np.where(s_plus >= s_minus, 1.0, -1.0)
+    edge = np.where(valid, np.maximum(s_plus, s_minus), -np.inf)
+    best = np.maximum(
+        np.maximum(face_a.max(axis=1), face_b.max(axis=1)), edge.reshape(len(a), -1).max(axis=1)
+    )
+    return SAT(a, pa, b, pb, face_a, face_b, edge, U * sign[..., None], best)
