@@ -230,14 +230,21 @@ def _qpsolvers_opts(name: str, tol: float) -> dict[str, Any]:
     """Keyword options qpsolvers forwards to the named solver (formulations section 5)."""
     t = 0.1 * tol
     table: dict[str, dict[str, Any]] = {
-        "clarabel": {"tol_gap_abs": t, "tol_gap_rel": t, "tol_feas": t},
+        "clarabel": {"tol_gap_abs": t, "tol_gap_rel": 0.0, "tol_feas": t},
         "osqp": {"eps_abs": t, "eps_rel": 0.0, "max_iter": 100_000, "polishing": True},
-        "proxqp": {"eps_abs": t, "eps_rel": 0.0},
-        "piqp": {"eps_abs": t, "eps_rel": 0.0},
+        # ProxQP ignores complementarity unless asked to check the duality gap
+        "proxqp": {
+            "eps_abs": t,
+            "eps_rel": 0.0,
+            "check_duality_gap": True,
+            "eps_duality_gap_abs": t,
+            "eps_duality_gap_rel": 0.0,
+        },
+        "piqp": {"eps_abs": t, "eps_rel": 0.0, "eps_duality_gap_abs": t, "eps_duality_gap_rel": 0.0},
         "qpalm": {"eps_abs": t, "eps_rel": 0.0},
         "scs": {"eps_abs": t, "eps_rel": 0.0},
-        # CVXOPT stops on the summed duality gap; the largest z_i s_i can sit just above it
-        "cvxopt": {"abstol": 0.1 * t, "reltol": 0.1 * t, "feastol": t},
+        # CVXOPT stops on the absolute OR relative gap; the relative one scales with |objective|
+        "cvxopt": {"abstol": t, "reltol": 1e-15, "feastol": t},
         "ecos": {"abstol": t, "reltol": t, "feastol": t},
         "highs": {"primal_feasibility_tolerance": t, "dual_feasibility_tolerance": t},
     }
@@ -257,8 +264,10 @@ def backend_options(solver: str, tol: float) -> dict[str, Any]:
     """
     t = 0.1 * tol
     if solver in ("clarabel", "cvxpy"):
-        # Clarabel stops on residuals relative to max(1, |q|, |b|...); for our O(1) data this is absolute.
-        return {"tol_gap_abs": t, "tol_gap_rel": t, "tol_feas": t, "max_iter": 200}
+        # Clarabel stops when the absolute OR the relative duality gap is small; the relative one scales
+        # with |objective| and let max z_i s_i reach 2e-9 at tol_gap_rel=1e-10, so it is switched off.
+        # Its feasibility residuals are relative to max(1, |q|, |b|...): absolute for our O(1) data.
+        return {"tol_gap_abs": t, "tol_gap_rel": 0.0, "tol_feas": t, "max_iter": 200}
     if solver == "osqp":
         # ADMM with polishing: the polished active-set solve is exact when it succeeds; eps_rel = 0 so the
         # unpolished fallback stops on absolute residuals; ADMM may need many iterations at 1e-9.
