@@ -37,6 +37,11 @@ class Points:
     label: list[str]
 
 
+def empty_points() -> Points:
+    z3 = np.zeros((0, 3))
+    return Points(np.zeros(0, dtype=int), z3, z3, z3, np.zeros(0), np.zeros(0, dtype=int), [])
+
+
 def clip(
     poly: Array, count: np.ndarray, normals: Array, offsets: Array
 ) -> tuple[Array, np.ndarray, np.ndarray]:
@@ -110,6 +115,8 @@ def face_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, sett
     n_ref = Nref[np.arange(len(p)), f]
     dots = np.einsum("tfk,tk->tf", Ninc, n_ref)
     t, g = np.nonzero(dots <= dots.min(axis=1, initial=1.0)[:, None] + _FACE_TIE)
+    if len(t) == 0:
+        return empty_points()
     ref_poly, ref_n = _gather_faces(Vref[t], bodies, f[t])
     inc_poly, inc_n = _gather_faces(Vinc[t], bodies, g)
     n_ref = n_ref[t]
@@ -189,15 +196,7 @@ def edge_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, sett
     """Closest points of the supporting edges for every tied best edge axis (eq. (13))."""
     rows: dict[str, list] = {k: [] for k in ("pp", "normal", "xa", "xb", "gap", "kind", "label")}
     if settings.mode == "vertex":
-        return Points(
-            np.zeros(0, int),
-            np.zeros((0, 3)),
-            np.zeros((0, 3)),
-            np.zeros((0, 3)),
-            np.zeros(0),
-            np.zeros(0, int),
-            [],
-        )
+        return empty_points()
     flat = sat.edge.reshape(len(sat.sep), -1)
     for p in np.nonzero(active)[0]:
         VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
@@ -209,9 +208,10 @@ def edge_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, sett
                 for j in eb:
                     pa, pb = bodies.edges[i], bodies.edges[j]
                     xa, xb = segment_closest(VA[pa[0]], VA[pa[1]], VB[pb[0]], VB[pb[1]])
-                    gap = float(u @ (xb - xa))
+                    n = _edge_normal(u, xb - xa)
+                    gap = float(n @ (xb - xa))
                     if gap < settings.margin:
-                        for key, val in zip(rows, (p, u, xa, xb, gap, EDGE_EDGE, f"E{i}/{j}")):
+                        for key, val in zip(rows, (p, n, xa, xb, gap, EDGE_EDGE, f"E{i}/{j}")):
                             rows[key].append(val)
     return Points(
         np.array(rows["pp"], dtype=int),
@@ -222,6 +222,15 @@ def edge_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, sett
         np.array(rows["kind"], dtype=int),
         rows["label"],
     )
+
+
+def _edge_normal(u: Array, r: Array) -> Array:
+    """Normal of an edge-edge point, eq. (13): the axis u, or the direction of r = xb - xa when the
+    closest points are clamped to an edge end (then r is not along u) and the edges are apart."""
+    dist = float(np.linalg.norm(r))
+    if dist > 1e-9 and u @ r > 0.5 * dist:
+        return r / dist
+    return u
 
 
 def _support_edges(V: Array, bodies: Bodies, cls: int, u: Array) -> np.ndarray:
