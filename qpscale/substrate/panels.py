@@ -1,0 +1,102 @@
+"""Triangular panels on the footprints of rigid punches (formulations/substrate.md, sec. 3).
+
+Each convex piece of a footprint is split into a fan of triangles from its centroid, one per
+edge, and each fan triangle into ``N**2`` panels arranged in strips parallel to the edge.  The
+strips are graded towards the footprint boundary, where the contact traction of a rigid punch
+is singular, and the points along each strip are spaced by a cosine rule towards the corners.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InvalidDesign
+from ..geometry import Array
+
+# Exponent of the strip grading 1 - rho_k = (1 - k/N)**GRADING (formulations/substrate.md, eq. (9)).
+GRADING = 3.5
+
+
+@dataclass(frozen=True)
+class Panels:
+    """Constant-traction panels on several footprints.
+
+    Attributes
+    ----------
+    tris : ndarray (P, 3, 2)
+        Counter-clockwise panel vertices, world frame, in L.
+    centroids : ndarray (P, 2)
+        Collocation points (panel centroids), in L.
+    areas : ndarray (P,)
+        Panel areas, in L^2.
+    owner : ndarray (P,) of int
+        Index of the footprint each panel belongs to.
+    """
+
+    tris: Array
+    centroids: Array
+    areas: Array
+    owner: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return int(self.areas.shape[0])
+
+
+def _signed_areas(tris: Array) -> Array:
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+
+
+def _fan_triangle(c: Array, a: Array, b: Array, n: int) -> list[Array]:
+    """Graded strip subdivision of the triangle (c, a, b) into n**2 panels; edge ab is the boundary."""
+    rho = 1.0 - (1.0 - np.arange(n + 1) / n) ** GRADING
+    levels = []
+    for k in range(n + 1):
+        tau = 0.5 * (1.0 - np.cos(np.pi * np.arange(k + 1) / max(k, 1)))
+        levels.append(c + rho[k] * ((a - c) + tau[:, None] * (b - a)))
+    out = []
+    for k in range(1, n + 1):
+        lo, up = levels[k - 1], levels[k]
+        for j in range(k):
+            out.append(np.array([lo[j], up[j], up[j + 1]]))
+            if j < k - 1:
+                out.append(np.array([lo[j], up[j + 1], lo[j + 1]]))
+    return out
+
+
+def piece_panels(piece: Array, n: int) -> Array:
+    """Panels ``(nv * n**2, 3, 2)`` of one convex polygon ``(nv, 2)`` (counter-clockwise)."""
+    c = piece.mean(axis=0)
+    tris: list[Array] = []
+    for i in range(len(piece)):
+        tris += _fan_triangle(c, piece[i], piece[(i + 1) % len(piece)], n)
+    arr = np.array(tris)
+    flip = _signed_areas(arr) < 0.0
+    arr[flip] = arr[flip][:, ::-1]
+    return arr
+
+
+def mesh_footprints(footprints: list[list[Array]], density: list[int] | int) -> Panels:
+    """Panels on every footprint; ``footprints[k]`` is a list of convex pieces (world frame).
+
+    Parameters
+    ----------
+    footprints : list of list of ndarray (nv, 2)
+        Convex pieces of each footprint, counter-clockwise, in L.
+    density : int or list of int
+        Strips per fan triangle N (>= 1), one value or one per footprint.
+    """
+    dens = [density] * len(footprints) if isinstance(density, int) else list(density)
+    if any(int(d) != d or d < 1 for d in dens):
+        raise InvalidDesign("refinement", density, "integers >= 1")
+    tris, owner = [], []
+    for k, (pieces, n) in enumerate(zip(footprints, dens)):
+        for piece in pieces:
+            t = piece_panels(np.asarray(piece, dtype=float), int(n))
+            tris.append(t)
+            owner.append(np.full(len(t), k))
+    all_tris = np.concatenate(tris)
+    return Panels(all_tris, all_tris.mean(axis=1), _signed_areas(all_tris), np.concatenate(owner))
