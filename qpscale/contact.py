@@ -223,16 +223,16 @@ def _assemble(world: World, q: Array, sat, parts: list[Points], settings: Contac
 
 
 def _unique_rows(pp: np.ndarray, normal: Array, xa: Array, xb: Array, tol: float = 1e-9) -> np.ndarray:
-    """Indices of the first of every group of coincident points (same pieces, points and normal)."""
-    keep = []
+    """Sorted indices of the first of every group of coincident rows (same pieces, points, normal)."""
     order = np.argsort(pp, kind="stable")
-    bounds = np.flatnonzero(np.diff(pp[order])) + 1
-    for grp in np.split(order, bounds):
-        feat = np.hstack([normal[grp], xa[grp], xb[grp]])
-        d = np.abs(feat[:, None, :] - feat[None, :, :]).max(axis=2)
-        dup = np.tril(d < tol, k=-1).any(axis=1)
-        keep.extend(grp[~dup].tolist())
-    return np.sort(np.array(keep, dtype=int))
+    key, feat = pp[order], np.hstack([normal, xa, xb])[order]
+    start = np.r_[0, np.flatnonzero(np.diff(key)) + 1]
+    width = int(np.diff(np.r_[start, len(key)]).max())
+    dup = np.zeros(len(key), dtype=bool)
+    for s in range(1, width):
+        same = (key[s:] == key[:-s]) & (np.abs(feat[s:] - feat[:-s]).max(axis=1) < tol)
+        dup[s:] |= same
+    return np.sort(order[~dup])
 
 
 def _dof_rows(cs: ContactSet, q: Array, centre: Array) -> tuple[Array, Array]:

@@ -179,63 +179,57 @@ def _sample(pts: Array, cnt: np.ndarray, code: np.ndarray, s: int) -> tuple[Arra
 
 
 def segment_closest(p1: Array, q1: Array, p2: Array, q2: Array) -> tuple[Array, Array]:
-    """Closest points of segments [p1, q1] and [p2, q2] (non-degenerate, eq. (13))."""
+    """Closest points of segments [p1, q1] and [p2, q2], rows ``(T, 3)`` (eq. (13))."""
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
-    a, e, f = d1 @ d1, d2 @ d2, d2 @ r
-    c, b = d1 @ r, d1 @ d2
+    a, e, f = (np.einsum("tk,tk->t", x, y) for x, y in ((d1, d1), (d2, d2), (d2, r)))
+    c, b = np.einsum("tk,tk->t", d1, r), np.einsum("tk,tk->t", d1, d2)
     den = a * e - b * b
-    s = np.clip((b * f - c * e) / den, 0.0, 1.0) if den > 1e-14 * a * e else 0.0
+    ok = den > 1e-14 * a * e
+    s = np.where(ok, np.clip((b * f - c * e) / np.where(ok, den, 1.0), 0.0, 1.0), 0.0)
     t = (b * s + f) / e
-    if t < 0.0 or t > 1.0:
-        t = float(np.clip(t, 0.0, 1.0))
-        s = float(np.clip((t * b - c) / a, 0.0, 1.0))
-    return p1 + s * d1, p2 + t * d2
+    low, high = t < 0.0, t > 1.0
+    s = np.where(low, np.clip(-c / a, 0.0, 1.0), np.where(high, np.clip((b - c) / a, 0.0, 1.0), s))
+    t = np.clip(t, 0.0, 1.0)
+    return p1 + s[:, None] * d1, p2 + t[:, None] * d2
 
 
 def edge_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, settings) -> Points:
     """Closest points of the supporting edges for every tied best edge axis (eq. (13))."""
-    rows: dict[str, list] = {k: [] for k in ("pp", "normal", "xa", "xb", "gap", "kind", "label")}
-    if settings.mode == "vertex":
+    if settings.mode == "vertex" or not active.any():
         return empty_points()
     flat = sat.edge.reshape(len(sat.sep), -1)
-    for p in np.nonzero(active)[0]:
-        VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
-        for ci, cj in zip(*np.nonzero(sat.edge[p] >= flat[p].max() - settings.tie_tol)):
-            u = sat.edge_axis[p, ci, cj]
-            ea = _support_edges(VA, bodies, ci, u)
-            eb = _support_edges(VB, bodies, cj, -u)
-            for i in ea:
-                for j in eb:
-                    pa, pb = bodies.edges[i], bodies.edges[j]
-                    xa, xb = segment_closest(VA[pa[0]], VA[pa[1]], VB[pb[0]], VB[pb[1]])
-                    n = _edge_normal(u, xb - xa)
-                    gap = float(n @ (xb - xa))
-                    if gap < settings.margin:
-                        for key, val in zip(rows, (p, n, xa, xb, gap, EDGE_EDGE, f"E{i}/{j}")):
-                            rows[key].append(val)
-    return Points(
-        np.array(rows["pp"], dtype=int),
-        np.array(rows["normal"]).reshape(-1, 3),
-        np.array(rows["xa"]).reshape(-1, 3),
-        np.array(rows["xb"]).reshape(-1, 3),
-        np.array(rows["gap"], dtype=float),
-        np.array(rows["kind"], dtype=int),
-        rows["label"],
-    )
+    best = flat.max(axis=1)[:, None, None] - settings.tie_tol
+    p, ci, cj = np.nonzero((sat.edge >= best) & active[:, None, None])
+    u = sat.edge_axis[p, ci, cj]
+    VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
+    ea = _support_edge(VA, bodies, ci, u)
+    eb = _support_edge(VB, bodies, cj, -u)
+    rows = np.arange(len(p))
+    EA, EB = bodies.edges[ea], bodies.edges[eb]
+    xa, xb = segment_closest(VA[rows, EA[:, 0]], VA[rows, EA[:, 1]], VB[rows, EB[:, 0]], VB[rows, EB[:, 1]])
+    n = _edge_normal(u, xb - xa)
+    gap = np.einsum("tk,tk->t", n, xb - xa)
+    keep = gap < settings.margin
+    labels = [f"E{i}/{j}" for i, j in zip(ea[keep].tolist(), eb[keep].tolist())]
+    kind = np.full(int(keep.sum()), EDGE_EDGE)
+    return Points(p[keep], n[keep], xa[keep], xb[keep], gap[keep], kind, labels)
 
 
 def _edge_normal(u: Array, r: Array) -> Array:
-    """Normal of an edge-edge point, eq. (13): the axis u, or the direction of r = xb - xa when the
+    """Normals of edge-edge points, eq. (13): the axis u, or the direction of r = xb - xa when the
     closest points are clamped to an edge end (then r is not along u) and the edges are apart."""
-    dist = float(np.linalg.norm(r))
-    if dist > 1e-9 and u @ r > 0.5 * dist:
-        return r / dist
-    return u
+    dist = np.linalg.norm(r, axis=1)
+    use_r = (dist > 1e-9) & (np.einsum("tk,tk->t", u, r) > 0.5 * dist)
+    return np.where(use_r[:, None], r / np.maximum(dist, 1e-300)[:, None], u)
 
 
-def _support_edges(V: Array, bodies: Bodies, cls: int, u: Array) -> np.ndarray:
-    """Edges of class ``cls`` lying in the supporting plane of V in direction u."""
-    e = np.nonzero(bodies.edge_class == cls)[0]
-    h = V @ u
-    top = h[bodies.edges[e]].min(axis=1)
-    return e[top >= h.max() - 1e-9 * max(1.0, float(np.abs(h).max()))]
+def _support_edge(V: Array, bodies: Bodies, cls: np.ndarray, u: Array) -> np.ndarray:
+    """Per row, the edge of class ``cls`` highest along u (both end points counted).
+
+    Two parallel edges tie only when a face holds both; that face's axis then ties with the edge
+    axis and wins, so one edge per row suffices.
+    """
+    h = np.einsum("tvk,tk->tv", V, u)
+    lowest = np.minimum(h[:, bodies.edges[:, 0]], h[:, bodies.edges[:, 1]])
+    lowest = np.where(bodies.edge_class[None, :] == cls[:, None], lowest, -np.inf)
+    return np.argmax(lowest, axis=1)
