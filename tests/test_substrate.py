@@ -1,0 +1,164 @@
+"""Tests of qpscale.substrate against closed forms, refinement, symmetry and reciprocity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import integrate
+
+from qpscale.errors import InvalidDesign
+from qpscale.substrate import (
+    SubstrateModel,
+    dimensional_stiffness,
+    isolated_block,
+    punch_blocks,
+    stiffness_matrix,
+)
+from qpscale.substrate.boussinesq import panel_integrals
+from qpscale.substrate.calibration import R180, solve_calibration
+from qpscale.tiling import Design
+
+
+@pytest.fixture(autouse=True)
+def _no_disk_cache(monkeypatch, tmp_path):
+    monkeypatch.setenv("QPSCALE_CACHE_DIR", str(tmp_path / "cache"))
+
+
+def _circle(nv: int) -> tuple[np.ndarray, float]:
+    th = 2 * np.pi * np.arange(nv) / nv
+    area = 0.5 * nv * np.sin(2 * np.pi / nv)
+    return np.c_[np.cos(th), np.sin(th)], np.sqrt(area / np.pi)  # radius of the equal-area circle
+
+
+@pytest.mark.parametrize("point", [(2.0, 1.5), (0.4, 0.3), (-0.3, 0.1)])
+def test_panel_integrals_match_adaptive_quadrature(point):
+    tri = np.array([[[0.0, 0.0], [1.0, 0.2], [0.3, 0.9]]])
+    p = np.array(point)
+    ints = panel_integrals(p[None], tri)
+    jac = 2 * 0.5 * ((1.0 * 0.9) - (0.2 * 0.3))
+
+    def f(v, u, key):
+        x = tri[0, 0] + u * (tri[0, 1] - tri[0, 0]) + v * (tri[0, 2] - tri[0, 0])
+        e = (x - p) / np.hypot(*(x - p))
+        g = {"1": 1.0, "x": e[0], "y": e[1], "xx": e[0] ** 2, "xy": e[0] * e[1], "yy": e[1] ** 2}[key]
+        return g / np.hypot(*(x - p))
+
+    for key, val in ints.items():
+        ref = (
+            integrate.dblquad(lambda v, u, k=key: f(v, u, k), 0, 1, 0, lambda u: 1 - u, epsabs=1e-9)[0] * jac
+        )
+        # closed form vs adaptive quadrature of the (integrable) singular kernel, quadrature good to ~1e-9
+        assert val[0, 0] == pytest.approx(ref, rel=1e-6, abs=1e-8)
+
+
+@pytest.mark.parametrize("nu,cross", [(0.5, True), (0.3, False)])
+def test_circular_punch_converges_to_closed_forms(nu, cross):
+    poly, a = _circle(48)
+    errs = []
+    for n in (3, 5):
+        K = punch_blocks([[poly]], np.zeros((1, 2)), nu, n, cross_terms=cross).K[0, 0]
+        # Johnson ch. 3: Kz = 2 E* a, K_phi = 4/3 E* a^3, Kx = 8 G a / (2 - nu), G = E*(1-nu)/2
+        ref = np.array([4 * (1 - nu) * a / (2 - nu), 2 * a, 4 / 3 * a**3])
+        errs.append(np.abs(np.array([K[0, 0], K[2, 2], K[3, 3]]) / ref - 1))
+    assert np.all(errs[1] < errs[0])
+    # 48-gon, N = 5: the constant-panel error of the 1/sqrt edge singularity, ~1/N^2, is below 1 %
+    assert np.all(errs[1] < 0.01)
+
+
+@pytest.mark.parametrize("shape", ["square", "hexagon"])
+def test_refinement_study_isolated(shape):
+    levels = (6, 8, 12)
+    K = np.array([np.diag(isolated_block(shape, 0.5, n))[[2, 3]] for n in levels])
+    h2 = 1.0 / np.array(levels, float) ** 2
+    # Richardson with the observed rate p from three levels
+    rate = np.log(np.abs(K[1] - K[0]) / np.abs(K[2] - K[1])) / np.log(
+        (levels[1] ** -2 - levels[0] ** -2) / (levels[2] ** -2 - levels[1] ** -2)
+    )
+    assert np.all((rate > 0.8) & (rate < 2.5))  # error ~ h^(2p): p = 1.8 observed (graded strips)
+    K_inf = K[2] + (K[2] - K[1]) * h2[2] ** rate / (h2[1] ** rate - h2[2] ** rate)
+    err8 = np.abs(K[1] / K_inf - 1)
+    assert np.all(err8 < 0.005), (K_inf, err8)  # the default refinement 8 is within 0.5 % (issue #4)
+
+
+def test_isolated_block_symmetries():
+    sq = isolated_block("square", 0.5, 5)
+    hx = isolated_block("hexagon", 0.5, 5)
+    for K in (sq, hx):
+        # nu = 0.5 decouples normal and tangential; a centrosymmetric footprint has no x-phi coupling
+        assert np.abs(K - np.diag(np.diag(K))).max() < 1e-9 * K.max()
+        assert K[0, 0] == pytest.approx(K[1, 1], rel=1e-10)  # 90-degree (square) / 60-degree symmetry
+        assert K[3, 3] == pytest.approx(K[4, 4], rel=1e-10)
+    # nu < 0.5: the (1 - 2 nu) terms couple u_x and phi_y; reciprocity holds up to the collocation
+    # error, which must shrink under refinement
+    asym = [np.abs(K - K.T).max() / K.max() for K in (isolated_block("square", 0.3, n) for n in (3, 7))]
+    assert asym[1] < asym[0] < 0.02
+
+
+def test_reciprocity_error_shrinks_under_refinement():
+    coarse = solve_calibration("triangle", "arrayed", 0.005, 0.5, 4, 1)
+    fine = solve_calibration("triangle", "arrayed", 0.005, 0.5, 7, 1)
+    assert fine.asymmetry < coarse.asymmetry < 0.05
+    # the two motif members are 180-degree images: K0[1] = R K0[0] R exactly
+    assert np.allclose(fine.K0[1], R180 @ fine.K0[0] @ R180)
+
+
+def test_coupling_decays_with_distance_and_grows_as_gap_closes():
+    cal = solve_calibration("square", "arrayed", 0.005, 0.5, 4, 2)
+    kz = {c.site: abs(c.K1[2, 2]) for c in cal.couplings if c.source == 0}
+    assert kz[(1, 0)] > kz[(1, 1)] > kz[(2, 0)] > kz[(2, 2)]
+    k0 = []
+    for gap in (0.1, 0.03, 0.005):
+        c = solve_calibration("square", "arrayed", gap, 0.5, 5, 1)
+        k0.append((c.K0[0][2, 2] / c.K_iso[2, 2], -[b for b in c.couplings if b.site == (1, 0)][0].K1[2, 2]))
+    k0 = np.array(k0)
+    assert np.all(np.diff(k0, axis=0) > 0)  # both self and coupling stiffness rise as d -> 0
+
+
+@pytest.mark.parametrize("shape", ["square", "triangle", "hexagon"])
+def test_assembled_stiffness_spd_and_interpolates(shape):
+    patch = Design(shape=shape, rings=1).patch()
+    model = SubstrateModel(refinement=4)
+    K1, K0 = (stiffness_matrix(patch, model.with_(coupling=f)).toarray() for f in (1.0, 0.0))
+    Kh = stiffness_matrix(patch, model.with_(coupling=0.04)).toarray()
+    assert np.allclose(Kh, K0 + 0.04 * (K1 - K0), atol=1e-12)
+    for K in (K1, K0, Kh):
+        assert np.allclose(K, K.T, atol=1e-12) and np.linalg.eigvalsh(K).min() > 0
+    iso = isolated_block(shape, 0.5, 4)
+    assert np.allclose(K0[:5, :5], iso, atol=1e-9)  # f = 0: each scale as if alone
+    assert np.abs(K0[:5, 5:]).max() == 0.0
+
+
+def test_springs_fidelity_is_diagonal_nearest_neighbour():
+    patch = Design(rings=2).patch()
+    K = stiffness_matrix(patch, SubstrateModel(refinement=4, fidelity="springs")).toarray()
+    for i, j in patch.neighbours[:5]:
+        blk = K[5 * i : 5 * i + 5, 5 * j : 5 * j + 5]
+        assert np.abs(blk - np.diag(np.diag(blk))).max() == 0.0 and np.all(np.diag(blk) != 0.0)
+
+
+def test_dimensional_stiffness_and_bad_input():
+    K = stiffness_matrix(Design(rings=0).patch(), SubstrateModel(refinement=3))
+    D = dimensional_stiffness(K, 3.0, 0.5, 2.0).toarray()
+    assert D[2, 2] == pytest.approx(K[2, 2] * 4.0 * 2.0) and D[3, 3] == pytest.approx(K[3, 3] * 4.0 * 8.0)
+    with pytest.raises(InvalidDesign, match="E_s"):
+        dimensional_stiffness(K, 0.0, 0.5, 1.0)
+    for bad in ({"nu": 0.51}, {"nu": -0.1}, {"coupling": 1.5}, {"threshold": 1.0}, {"fidelity": "x"}):
+        with pytest.raises(InvalidDesign):
+            SubstrateModel(**bad)
+    sq = np.array([[-1.0, -1], [1, -1], [1, 1], [-1, 1]])
+    with pytest.raises(InvalidDesign, match="footprints"):
+        punch_blocks([[sq], [sq + 0.5]], np.array([[0.0, 0], [0.5, 0.5]]), 0.5, 2)
+
+
+def test_cli_substrate_json_and_exit_code():
+    import json
+
+    from typer.testing import CliRunner
+
+    from qpscale.cli import app
+
+    res = CliRunner().invoke(app, ["substrate", "--refinement", "3", "--json"])
+    assert res.exit_code == 0
+    out = json.loads(res.stdout)
+    assert set(out["K0"]) == {"Kx", "Ky", "Kz", "Kphix", "Kphiy"} and out["K0"]["Kz"] > out["isolated"]["Kz"]
+    assert CliRunner().invoke(app, ["substrate", "--nu", "0.7"]).exit_code == 2
