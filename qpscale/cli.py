@@ -171,6 +171,49 @@ def geometry(
     emit(payload, as_json, summary)
 
 
+_DOF_KEYS = ("Kx", "Ky", "Kz", "Kphix", "Kphiy")
+
+
+@app.command()
+@handles_errors
+def substrate(
+    shape: str = ShapeOpt, tiling: str | None = TilingOpt, gap: float = GapOpt,
+    nu: float = typer.Option(0.5, "--nu", help="Poisson's ratio of the substrate, [0, 0.5]."),
+    isolated: bool = typer.Option(False, "--isolated", help="Only the isolated single-punch stiffness."),
+    refinement: int = typer.Option(6, "--refinement", help="Panel strips per fan triangle, [2, 16]."),
+    as_json: bool = JsonOpt,
+) -> None:
+    """Normalised substrate stiffness: isolated punch, self block K0, coupling blocks K1."""
+    from .substrate import SubstrateModel, calibrate, coupling_ratio, isolated_block
+
+    design = Design(shape=shape, tiling=tiling, gap=gap)
+    model = SubstrateModel(nu=nu, refinement=refinement)
+
+    def diag(K: Any) -> dict[str, float]:
+        return {k: float(v) for k, v in zip(_DOF_KEYS, K.diagonal())}
+
+    if isolated:
+        K_iso = isolated_block(design.shape, nu, refinement)
+        payload: dict[str, Any] = {"isolated": diag(K_iso), "isolated_block": K_iso.tolist()}
+    else:
+        cal = calibrate(design, model)
+        near = [c for c in cal.couplings if c.source == 0]
+        payload = {"isolated": diag(cal.K_iso), "K0": diag(cal.K0[0]), "K0_block": cal.K0[0].tolist(),
+                   "neighbours": [{"offset": list(c.offset), "site": [*c.site, c.receiver], "K1": diag(c.K1),
+                                   "K1_block": c.K1.tolist(), "ratio": coupling_ratio(c.K1, cal.K0[0])}
+                                  for c in near],
+                   "asymmetry": cal.asymmetry, "n_panels": cal.n_panels}
+    payload.update({"shape": design.shape, "tiling": design.tiling, "gap": gap, "nu": nu})
+
+    def summary(p: dict[str, Any]) -> None:
+        console.print(f"[bold]{p['shape']} ({p['tiling']})[/], nu = {p['nu']}: isolated "
+                      + ", ".join(f"{k} {v:.4g}" for k, v in p["isolated"].items()))
+        if "K0" in p:
+            console.print("K0 " + ", ".join(f"{k} {v:.4g}" for k, v in p["K0"].items())
+                          + f"; {len(p['neighbours'])} coupling blocks, asymmetry {p['asymmetry']:.2g}")
+
+    emit(payload, as_json, summary)
+
 def main() -> None:
     """Console-script entry point."""
     app()
