@@ -1,0 +1,318 @@
+"""Three-point bending of a scaled membrane: supports, plate, bonded scales, contact, curve, C_f*.
+
+Implements formulations/membrane.md sections 6-8: the retained DOFs (eq. (9)), the unilateral
+supports and plate (eqs. (10)-(11)), scale-scale contact from ``qpscale.contact`` (eq. (12)),
+the sequential QP at each plate position (eq. (13)) and the compliance read-out (eq. (14)).
+The membrane is condensed once (qpscale.membrane); every QP has only the retained DOFs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import shapely
+from shapely.geometry import Polygon, box
+
+from ..errors import InvalidDesign, SolverFailure
+from ..geometry import Array, rotation_matrix, skew, tangent_operator
+from ..membrane import MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
+from ..qp import IncrementQP
+from ..solvers import solve_qp
+from ..tiling import Design, Patch, build_patch
+from ..units import compliance_star
+
+MODES = ("scaled", "isolated", "bare")
+PENETRATION_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class FlexureSetup:
+    """A three-point bending test of the membrane, bare or with bonded scales.
+
+    Parameters
+    ----------
+    design : Design
+        Scale design (its ``rings`` is ignored: the face is covered, see ``kept_scales``).
+    mode : {"scaled", "isolated", "bare"}
+        Scales covering the top face, one scale at the centre, or none.
+    load_line : {"x", "y"}
+        Direction of the plate; supports are parallel to it at +-span/2 across it.
+    membrane : MembraneModel
+    span, plate_width, support_width : float
+        Support distance and the widths of the flat rigid plate and support strips, in L.
+    max_deflection : float
+        Final plate displacement, in L.
+    increments : int
+        Plate positions on the curve.
+    contact : bool
+        Scale-scale contact rows (False: scales interact through the membrane only).
+    """
+
+    design: Design = field(default_factory=Design)
+    mode: str = "scaled"
+    load_line: str = "x"
+    membrane: MembraneModel = field(default_factory=MembraneModel)
+    span: float = 8.0
+    plate_width: float = 0.5
+    support_width: float = 0.5
+    max_deflection: float = 0.2
+    increments: int = 5
+    contact: bool = True
+    solver: str = "clarabel"
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise InvalidDesign("mode", self.mode, "{" + ", ".join(MODES) + "}")
+        if self.load_line not in ("x", "y"):
+            raise InvalidDesign("load_line", self.load_line, "{x, y}")
+        half = min(self.membrane.length, self.membrane.width) / 2
+        checks = [("span", self.span, 0 < self.span / 2 + self.support_width / 2 < half),
+                  ("plate_width", self.plate_width, 0 < self.plate_width < self.span / 2),
+                  ("support_width", self.support_width, 0 < self.support_width < self.span / 2),
+                  ("max_deflection", self.max_deflection, 0 < self.max_deflection <= 1.0),
+                  ("increments", self.increments, 1 <= int(self.increments) == self.increments <= 200)]
+        for name, value, ok in checks:
+            if not ok:
+                raise InvalidDesign(name, value, "a positive value that fits the membrane")
+
+    @property
+    def axis(self) -> int:
+        """Coordinate across the load line (the bending direction): 1 for load line x."""
+        return 1 if self.load_line == "x" else 0
+
+
+@dataclass(frozen=True)
+class FlexureResult:
+    """Force-deflection curve and compliance (E_m = 1 units unless the model says otherwise).
+
+    Attributes
+    ----------
+    deflection, force : ndarray (k,)
+        Plate displacement (L) and plate reaction (E_m L^2), starting at (0, 0).
+    C_f, Cf_star : float
+        Compliance read at the end of the curve, eq. (14), and its normalisation.
+    n_scales, n_retained, sqp_iterations, max_penetration, wall_s, condense_s
+        Diagnostics.
+    """
+
+    deflection: Array
+    force: Array
+    C_f: float
+    Cf_star: float
+    n_scales: int
+    n_retained: int
+    sqp_iterations: int
+    max_penetration: float
+    wall_s: float
+    condense_s: float
+    z_final: Array = field(repr=False)
+    extras: dict = field(default_factory=dict, repr=False)
+
+
+def kept_scales(setup: FlexureSetup) -> Patch:
+    """Scales whose base centroid lies on the membrane's top face (isolated: the centre one)."""
+    if setup.mode == "isolated":
+        return build_patch(setup.design.isolated())
+    a, b = setup.membrane.length / 2, setup.membrane.width / 2
+    rings, count, patch = 2, -1, None
+    while rings <= 40:
+        patch = build_patch(setup.design.with_(rings=rings))
+        inside = (np.abs(patch.centroids[:, 0]) < a) & (np.abs(patch.centroids[:, 1]) < b)
+        if inside.sum() == count:
+            break
+        count, rings = int(inside.sum()), rings + 2
+    return sub_patch(patch, np.flatnonzero(inside))
+
+
+def sub_patch(patch: Patch, keep: np.ndarray) -> Patch:
+    """The scales ``keep`` of ``patch`` as a patch of their own (neighbour pairs re-indexed)."""
+    new = np.full(patch.n_scales, -1)
+    new[keep] = np.arange(len(keep))
+    nb = new[patch.neighbours]
+    nb = nb[(nb >= 0).all(axis=1)]
+    return Patch(patch.design, patch.sites[keep], patch.centroids[keep], patch.angles[keep],
+                 patch.ring[keep], nb.reshape(-1, 2))
+
+
+def _strips(setup: FlexureSetup) -> tuple[Polygon, list[Polygon]]:
+    """Plate strip (top) and the two support strips (bottom) in the plane."""
+    big = 10.0 * max(setup.membrane.length, setup.membrane.width)
+    wp, ws, s = setup.plate_width / 2, setup.support_width / 2, setup.span / 2
+
+    def strip(c: float, w: float) -> Polygon:
+        return box(-big, c - w, big, c + w) if setup.axis == 1 else box(c - w, -big, c + w, big)
+
+    return strip(0.0, wp), [strip(-s, ws), strip(s, ws)]
+
+
+def _mesh(setup: FlexureSetup) -> MembraneMesh:
+    s, wp, ws = setup.span / 2, setup.plate_width / 2, setup.support_width / 2
+    cuts = (-s - ws, -s + ws, s - ws, s + ws, -wp, wp)
+    xb, yb = ((), cuts) if setup.axis == 1 else (cuts, ())
+    return MembraneMesh(setup.membrane, build_mesh(setup.membrane, xb, yb))
+
+
+def _in(poly: Polygon, xy: Array) -> np.ndarray:
+    return shapely.contains_xy(poly.buffer(1e-9, join_style="mitre"), xy[:, 0], xy[:, 1])
+
+
+@dataclass(frozen=True)
+class FlexureModel:
+    """Everything fixed across the curve: condensed membrane, retained DOF layout, plate points."""
+
+    setup: FlexureSetup
+    mm: MembraneMesh
+    patch: Patch | None
+    cond: object
+    n_q: int  # 5 * number of scales (first block of the retained DOFs)
+    support_idx: np.ndarray  # positions in z_r of the support u_z
+    plate_idx: np.ndarray  # bare: positions in z_r of the plate-node u_z
+    plate_points: list  # scaled: (scale, body point (3,)) material points under the plate
+    condense_s: float
+
+
+def build_model(setup: FlexureSetup) -> FlexureModel:
+    """Mesh, tie, pin and condense the membrane once (formulations/membrane.md eqs. (5)-(9))."""
+    t0 = time.perf_counter()
+    mm = _mesh(setup)
+    xyz = mm.nodes
+    top, bottom = mm.face_nodes(True), mm.face_nodes(False)
+    plate, supports = _strips(setup)
+    patch = None if setup.mode == "bare" else kept_scales(setup)
+    ties = []
+    if patch is not None:
+        taken = np.zeros(len(top), bool)
+        for i, poly in enumerate(patch.polygons()):
+            mask = _in(poly, xyz[top, :2]) & ~taken
+            taken |= mask
+            ties.append((top[mask], xyz[top[mask], :2], patch.centroids[i]))
+    pins = _pins(xyz, bottom)
+    T, gen_of = generalised_map(len(xyz), ties, pins)
+    sup_nodes = bottom[_in(supports[0], xyz[bottom, :2]) | _in(supports[1], xyz[bottom, :2])]
+    n_q = 5 * len(ties)
+    n_free = T.shape[1] - n_q
+    retained = [n_free + np.arange(n_q), gen_of[3 * sup_nodes + 2]]
+    plate_nodes = top[_in(plate, xyz[top, :2])] if patch is None else np.zeros(0, int)
+    retained.append(gen_of[3 * plate_nodes + 2])
+    retained = np.concatenate(retained)
+    if (retained < 0).any():
+        raise InvalidDesign("mesh", "a support node is tied or pinned", "untied support nodes")
+    cond = condense(mm.K, T, retained)
+    ns = len(sup_nodes)
+    points = _plate_points(patch, plate) if patch is not None else []
+    return FlexureModel(setup, mm, patch, cond, n_q, n_q + np.arange(ns), n_q + ns + np.arange(len(plate_nodes)),
+                        points, time.perf_counter() - t0)
+
+
+def _pins(xyz: Array, bottom: np.ndarray) -> np.ndarray:
+    """Three reaction-free pins removing the in-plane rigid modes (eq. (9)).
+
+    u_x, u_y at the bottom node nearest the centre and u_y at the bottom node nearest (a/4, 0).
+    """
+    b = xyz[bottom]
+    c = bottom[np.argmin(np.hypot(b[:, 0], b[:, 1]))]
+    a = 0.25 * b[:, 0].max()
+    e = bottom[np.argmin(np.hypot(b[:, 0] - a, b[:, 1]))]
+    return np.array([3 * c, 3 * c + 1, 3 * e + 1])
+
+
+def _plate_points(patch: Patch, plate: Polygon) -> list[tuple[int, Array]]:
+    """Vertices of (top face ∩ plate strip) of every scale, as body-frame material points."""
+    d = patch.design
+    out = []
+    for i, base in enumerate(patch.base):
+        top = Polygon(base + d.top_offset)
+        inter = top.intersection(plate)
+        if inter.is_empty or inter.area < 1e-12:
+            continue
+        for xy in np.asarray(inter.exterior.coords)[:-1]:
+            out.append((i, np.array([xy[0] - patch.centroids[i, 0], xy[1] - patch.centroids[i, 1],
+                                     d.thickness])))
+    return out
+
+
+def _plate_rows(model: FlexureModel, z: Array, z_plate: float) -> tuple[Array, Array, Array]:
+    """Plate rows ``G z <= h`` linearised at ``z`` and the exact overlaps there, eq. (11)."""
+    m = len(model.plate_points) if model.patch is not None else len(model.plate_idx)
+    G = np.zeros((m, len(z)))
+    if model.patch is None:
+        G[np.arange(m), model.plate_idx] = 1.0
+        return G, np.full(m, z_plate - model.setup.membrane.height), z[model.plate_idx] + model.setup.membrane.height - z_plate
+    h, over = np.zeros(m), np.zeros(m)
+    q = z[: model.n_q].reshape(-1, 5)
+    for k, (i, r) in enumerate(model.plate_points):
+        Rr = rotation_matrix(q[i, 3:]) @ r
+        zp = model.setup.membrane.height + q[i, 2] + Rr[2]
+        dz = np.r_[0.0, 0.0, 1.0, (-skew(Rr) @ tangent_operator(q[i, 3:]))[2]]
+        G[k, 5 * i : 5 * i + 5] = dz
+        h[k] = z_plate - zp + dz @ q[i]
+        over[k] = zp - z_plate
+    return G, h, over
+
+
+def _contact_rows(model: FlexureModel, z: Array) -> tuple[Array, Array, float]:
+    """Scale-scale rows ``-J q <= g - J q_n`` from qpscale.contact, eq. (12), and the exact penetration."""
+    n = len(z)
+    if model.patch is None or model.patch.n_scales < 2 or not model.setup.contact:
+        return np.zeros((0, n)), np.zeros(0), 0.0
+    try:
+        from ..contact import detect_contacts, gap_jacobian, penetration
+    except ImportError as exc:
+        raise SolverFailure("contact", "qpscale.contact is not available", detail=str(exc)) from exc
+    q = z[: model.n_q].reshape(-1, 5)
+    cs = detect_contacts(model.patch, q, None)
+    J = sp.csr_matrix(gap_jacobian(cs, model.patch, q)).toarray()
+    G = np.zeros((J.shape[0], n))
+    G[:, : model.n_q] = -J
+    return G, np.asarray(cs.gap) - J @ z[: model.n_q], float(penetration(model.patch, q))
+
+
+def _solve_level(model: FlexureModel, z: Array, w: float, inc: int) -> tuple[Array, float, int, float]:
+    """Sequential QP at one plate position: returns z, plate force, iterations, penetration (eq. (13))."""
+    setup = model.setup
+    top = setup.membrane.height + (setup.design.thickness if model.patch is not None else 0.0)
+    z_plate = top - w
+    P = sp.csc_matrix(model.cond.S)
+    ns = len(model.support_idx)
+    Gs = np.zeros((ns, len(z)))
+    Gs[np.arange(ns), model.support_idx] = -1.0
+    for it in range(1, 31):
+        Gp, hp, _ = _plate_rows(model, z, z_plate)
+        Gc, hc, _ = _contact_rows(model, z)
+        G = sp.csc_matrix(np.vstack([Gp, Gs, Gc]))
+        qp = IncrementQP(P, np.zeros(len(z)), G, np.r_[hp, np.zeros(ns), hc])
+        res = solve_qp(qp, solver=setup.solver, accuracy="mid")
+        if not res.found:
+            raise SolverFailure(setup.solver, res.status, increment=inc)
+        step = float(np.max(np.abs(res.x - z)))
+        z = res.x
+        force = float(np.sum(res.z[: len(hp)]))
+        pen = max(0.0, float(np.max(_plate_rows(model, z, z_plate)[2], initial=0.0)), _contact_rows(model, z)[2])
+        if pen < PENETRATION_TOL and (step < 1e-10 or model.patch is None or it > 1):
+            return z, force, it, pen
+    raise SolverFailure(setup.solver, "sequential QP did not converge", increment=inc, detail=f"penetration {pen:.3g}")
+
+
+def run_flexure(setup: FlexureSetup) -> FlexureResult:
+    """The force-deflection curve of three-point bending and C_f* (formulations/membrane.md eq. (14))."""
+    t0 = time.perf_counter()
+    model = build_model(setup)
+    z = np.zeros(len(model.cond.retained))
+    ws = np.linspace(0.0, setup.max_deflection, setup.increments + 1)
+    forces, iters, pen = [0.0], 0, 0.0
+    for inc, w in enumerate(ws[1:], start=1):
+        z, F, it, p = _solve_level(model, z, float(w), inc)
+        forces.append(F)
+        iters, pen = iters + it, max(pen, p)
+    F = np.array(forces)
+    if not F[-1] > 0:
+        raise SolverFailure(setup.solver, "no plate force", detail=f"F={F[-1]:.3g}")
+    C_f = float(ws[-1] / F[-1])
+    mem = setup.membrane
+    I_m = (mem.width if setup.axis == 1 else mem.length) * mem.height**3 / 12.0
+    return FlexureResult(ws, F, C_f, compliance_star(C_f, mem.E, I_m, 1.0),
+                         0 if model.patch is None else model.patch.n_scales, len(model.cond.retained), iters, pen,
+                         time.perf_counter() - t0, model.condense_s, z, {"model": model})

@@ -1,0 +1,242 @@
+"""The elastic membrane of the flexure test: hexahedral mesh, locking-free stiffness, condensation.
+
+Implements formulations/membrane.md: the tensor-product hexahedral mesh whose grid lines follow
+the supports and the plate (section 2), the selective reduced integration that keeps trilinear
+hexahedra free of volumetric locking as nu_m -> 1/2 (section 3, eqs. (2)-(4)), the linear tie of
+bonded top-face nodes to a scale's rigid motion (section 4, eq. (5)) and the condensation of the
+membrane onto the retained degrees of freedom through one sparse factorisation (section 5,
+eqs. (6)-(8)).  Lengths in L, E_m = 1 unless given.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from skfem import Basis, BilinearForm, ElementHex1, ElementVector, MeshHex
+from skfem.helpers import ddot, div, sym_grad
+
+from .errors import InvalidDesign, SolverFailure
+from .geometry import Array
+from .units import check_nu
+
+#: nu_m = 1/2 is taken as this value in the bulk modulus (formulations/membrane.md, eq. (4)).
+NU_INCOMPRESSIBLE = 0.4999
+
+
+@dataclass(frozen=True)
+class MembraneModel:
+    """A rectangular block ``[-a/2, a/2] x [-b/2, b/2] x [0, h]`` of linear elastic solid.
+
+    Parameters
+    ----------
+    length, width, height : float
+        Extent along x, y and z, in L (paper: 10, 10, 1.5).
+    E : float
+        Young's modulus E_m (1 in the solver).
+    nu : float
+        Poisson's ratio nu_m in [0, 0.5]; 0.5 is taken as ``NU_INCOMPRESSIBLE``.
+    h : float
+        Target element edge in the plane, in L (grid lines are forced at ``breaks``).
+    nz : int
+        Element layers through the thickness.
+    """
+
+    length: float = 10.0
+    width: float = 10.0
+    height: float = 1.5
+    E: float = 1.0
+    nu: float = 0.5
+    h: float = 0.25
+    nz: int = 6
+
+    def __post_init__(self) -> None:
+        check_nu(self.nu, "nu_m")
+        for name, value in (("length", self.length), ("width", self.width), ("height", self.height),
+                            ("E_m", self.E), ("h", self.h)):
+            if not (np.isfinite(value) and value > 0):
+                raise InvalidDesign(name, value, "(0, inf)")
+        if not (1 <= int(self.nz) == self.nz <= 64):
+            raise InvalidDesign("nz", self.nz, "integers in [1, 64]")
+        if self.h > min(self.length, self.width):
+            raise InvalidDesign("h", self.h, f"(0, {min(self.length, self.width)}]")
+
+    @property
+    def nu_eff(self) -> float:
+        return min(self.nu, NU_INCOMPRESSIBLE)
+
+    @property
+    def lame(self) -> tuple[float, float]:
+        """Shear modulus mu and bulk modulus kappa of eq. (2)."""
+        nu = self.nu_eff
+        return self.E / (2.0 * (1.0 + nu)), self.E / (3.0 * (1.0 - 2.0 * nu))
+
+
+def graded_axis(lo: float, hi: float, h: float, breaks: tuple[float, ...] = ()) -> Array:
+    """Grid coordinates on [lo, hi] with spacing <= h and a grid line at each break inside."""
+    pts = np.unique(np.round(np.r_[lo, hi, [b for b in breaks if lo < b < hi]], 12))
+    out = [pts[:1]]
+    for a, b in zip(pts[:-1], pts[1:]):
+        n = max(1, int(np.ceil((b - a) / h - 1e-9)))
+        out.append(np.linspace(a, b, n + 1)[1:])
+    return np.concatenate(out)
+
+
+def build_mesh(model: MembraneModel, xbreaks: tuple[float, ...] = (), ybreaks: tuple[float, ...] = ()) -> MeshHex:
+    """The tensor hexahedral mesh of the block; ``xbreaks``/``ybreaks`` become grid lines."""
+    x = graded_axis(-model.length / 2, model.length / 2, model.h, (0.0, *xbreaks))
+    y = graded_axis(-model.width / 2, model.width / 2, model.h, (0.0, *ybreaks))
+    z = np.linspace(0.0, model.height, model.nz + 1)
+    return MeshHex.init_tensor(x, y, z)
+
+
+def _centre_quadrature() -> tuple[Array, Array]:
+    return np.full((3, 1), 0.5), np.ones(1)
+
+
+def assemble_stiffness(model: MembraneModel, mesh: MeshHex) -> sp.csr_matrix:
+    """Stiffness ``(3N, 3N)`` by selective reduced integration, eqs. (2)-(3).
+
+    The deviatoric energy is integrated with 2x2x2 Gauss points, the volumetric one at the
+    element centre only (the mean-dilatation B-bar of trilinear hexahedra). DOF ordering is
+    skfem's: node k has DOFs ``3k, 3k+1, 3k+2`` (x, y, z).
+    """
+    mu, kappa = model.lame
+    element = ElementVector(ElementHex1())
+
+    @BilinearForm
+    def deviatoric(u, v, w):
+        eu, ev = sym_grad(u), sym_grad(v)
+        return 2.0 * mu * (ddot(eu, ev) - div(u) * div(v) / 3.0)
+
+    @BilinearForm
+    def volumetric(u, v, w):
+        return kappa * div(u) * div(v)
+
+    full = Basis(mesh, element, intorder=2)
+    reduced = Basis(mesh, element, quadrature=_centre_quadrature())
+    K = deviatoric.assemble(full) + volumetric.assemble(reduced)
+    return sp.csr_matrix(K)
+
+
+def node_dofs(nodes: np.ndarray, comp: int | None = None) -> np.ndarray:
+    """Global DOF indices of ``nodes``: one component, or all three interleaved."""
+    nodes = np.asarray(nodes, dtype=int)
+    if comp is not None:
+        return 3 * nodes + comp
+    return (3 * nodes[:, None] + np.arange(3)).ravel()
+
+
+def tie_rows(node_xy: Array, centroid: Array) -> Array:
+    """Linear map ``(3 k, 5)`` from a scale's DOFs to its bonded nodes' displacements, eq. (5).
+
+    Node displacement = (u_x, u_y, u_z + phi_x (y - c_y) - phi_y (x - c_x)): the small-rotation
+    rigid motion of points on the base plane z = 0 of the scale's body frame.
+    """
+    k = node_xy.shape[0]
+    T = np.zeros((k, 3, 5))
+    T[:, 0, 0] = 1.0
+    T[:, 1, 1] = 1.0
+    T[:, 2, 2] = 1.0
+    T[:, 2, 3] = node_xy[:, 1] - centroid[1]
+    T[:, 2, 4] = -(node_xy[:, 0] - centroid[0])
+    return T.reshape(3 * k, 5)
+
+
+@dataclass(frozen=True)
+class Condensed:
+    """The membrane condensed onto its retained generalised DOFs z_r, eqs. (6)-(8).
+
+    Attributes
+    ----------
+    S : ndarray (m, m)
+        Schur complement: the membrane energy is ``1/2 z_r' S z_r``.
+    T : csr_matrix (3N, n_gen)
+        Full nodal displacements from the generalised DOFs (ties and Dirichlet pins applied).
+    retained, condensed : ndarray of int
+        Indices into the generalised DOFs.
+    """
+
+    S: Array
+    T: sp.csr_matrix
+    retained: np.ndarray
+    condensed: np.ndarray
+    X: Array  # (n_condensed, m): condensed DOFs per unit retained DOF, -K_cc^-1 K_cr
+
+    def displacement(self, z_r: Array) -> Array:
+        """Nodal displacements ``(N, 3)`` of the whole membrane for retained values ``z_r``."""
+        z = np.zeros(self.T.shape[1])
+        z[self.retained] = z_r
+        z[self.condensed] = self.X @ z_r
+        return (self.T @ z).reshape(-1, 3)
+
+
+def generalised_map(n_nodes: int, ties: list[tuple[np.ndarray, Array, Array]], pinned: np.ndarray
+                    ) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Map ``T`` from generalised DOFs to the 3N nodal DOFs, eq. (5).
+
+    Generalised DOFs: first the free nodal DOFs (neither tied nor pinned), then 5 per scale in
+    the order of ``ties`` (each ``(nodes, node_xy (k, 2), centroid (2,))``).  Returns ``T`` and,
+    for every nodal DOF, its generalised index (-1 if tied or pinned).
+    """
+    tied = np.concatenate([node_dofs(t[0]) for t in ties]) if ties else np.zeros(0, int)
+    if len(np.unique(tied)) != len(tied):
+        raise InvalidDesign("ties", "a node bonded to two scales", "disjoint footprints")
+    free = np.setdiff1d(np.arange(3 * n_nodes), np.r_[tied, pinned].astype(int))
+    gen_of = np.full(3 * n_nodes, -1)
+    gen_of[free] = np.arange(len(free))
+    rows, cols, vals = [free], [np.arange(len(free))], [np.ones(len(free))]
+    base = len(free)
+    for s, (nodes, xy, centroid) in enumerate(ties):
+        Ts = tie_rows(xy, centroid)
+        r, c = np.nonzero(Ts)
+        rows.append(node_dofs(nodes)[r])
+        cols.append(base + 5 * s + c)
+        vals.append(Ts[r, c])
+    T = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(3 * n_nodes, base + 5 * len(ties)))
+    return T, gen_of
+
+
+def condense(K: sp.spmatrix, T: sp.csr_matrix, retained: np.ndarray) -> Condensed:
+    """Schur complement of ``T' K T`` onto ``retained`` through one sparse LU, eqs. (6)-(8)."""
+    Kg = sp.csc_matrix(T.T @ K @ T)
+    n = Kg.shape[0]
+    retained = np.asarray(retained, dtype=int)
+    condensed = np.setdiff1d(np.arange(n), retained)
+    Kcc = Kg[condensed][:, condensed].tocsc()
+    Kcr = Kg[condensed][:, retained].toarray()
+    Krr = Kg[retained][:, retained].toarray()
+    try:
+        lu = spla.splu(Kcc, permc_spec="COLAMD")
+    except RuntimeError as exc:  # singular: a rigid mode not removed by supports or pins
+        raise SolverFailure("splu", "singular membrane stiffness", detail=str(exc)) from exc
+    X = -lu.solve(Kcr)
+    if not np.all(np.isfinite(X)):
+        raise SolverFailure("splu", "non-finite condensation")
+    S = Krr + Kcr.T @ X
+    return Condensed(0.5 * (S + S.T), sp.csr_matrix(T), retained, condensed, X)
+
+
+@dataclass(frozen=True)
+class MembraneMesh:
+    """A meshed membrane with its stiffness: node coordinates and face node sets."""
+
+    model: MembraneModel
+    mesh: MeshHex
+
+    @cached_property
+    def K(self) -> sp.csr_matrix:
+        return assemble_stiffness(self.model, self.mesh)
+
+    @property
+    def nodes(self) -> Array:
+        """Node coordinates ``(N, 3)``."""
+        return self.mesh.p.T
+
+    def face_nodes(self, top: bool) -> np.ndarray:
+        z = self.model.height if top else 0.0
+        return np.flatnonzero(np.isclose(self.nodes[:, 2], z))
