@@ -55,8 +55,13 @@ class MembraneModel:
 
     def __post_init__(self) -> None:
         check_nu(self.nu, "nu_m")
-        for name, value in (("length", self.length), ("width", self.width), ("height", self.height),
-                            ("E_m", self.E), ("h", self.h)):
+        for name, value in (
+            ("length", self.length),
+            ("width", self.width),
+            ("height", self.height),
+            ("E_m", self.E),
+            ("h", self.h),
+        ):
             if not (np.isfinite(value) and value > 0):
                 raise InvalidDesign(name, value, "(0, inf)")
         if not (1 <= int(self.nz) == self.nz <= 64):
@@ -85,7 +90,9 @@ def graded_axis(lo: float, hi: float, h: float, breaks: tuple[float, ...] = ()) 
     return np.concatenate(out)
 
 
-def build_mesh(model: MembraneModel, xbreaks: tuple[float, ...] = (), ybreaks: tuple[float, ...] = ()) -> MeshHex:
+def build_mesh(
+    model: MembraneModel, xbreaks: tuple[float, ...] = (), ybreaks: tuple[float, ...] = ()
+) -> MeshHex:
     """The tensor hexahedral mesh of the block; ``xbreaks``/``ybreaks`` become grid lines."""
     x = graded_axis(-model.length / 2, model.length / 2, model.h, (0.0, *xbreaks))
     y = graded_axis(-model.width / 2, model.width / 2, model.h, (0.0, *ybreaks))
@@ -174,8 +181,9 @@ class Condensed:
         return (self.T @ z).reshape(-1, 3)
 
 
-def generalised_map(n_nodes: int, ties: list[tuple[np.ndarray, Array, Array]], pinned: np.ndarray
-                    ) -> tuple[sp.csr_matrix, np.ndarray]:
+def generalised_map(
+    n_nodes: int, ties: list[tuple[np.ndarray, Array, Array]], pinned: np.ndarray
+) -> tuple[sp.csr_matrix, np.ndarray]:
     """Map ``T`` from generalised DOFs to the 3N nodal DOFs, eq. (5).
 
     Generalised DOFs: first the free nodal DOFs (neither tied nor pinned), then 5 per scale in
@@ -196,8 +204,10 @@ def generalised_map(n_nodes: int, ties: list[tuple[np.ndarray, Array, Array]], p
         rows.append(node_dofs(nodes)[r])
         cols.append(base + 5 * s + c)
         vals.append(Ts[r, c])
-    T = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(3 * n_nodes, base + 5 * len(ties)))
+    T = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(3 * n_nodes, base + 5 * len(ties)),
+    )
     return T, gen_of
 
 

@@ -69,11 +69,13 @@ class FlexureSetup:
         if self.load_line not in ("x", "y"):
             raise InvalidDesign("load_line", self.load_line, "{x, y}")
         half = min(self.membrane.length, self.membrane.width) / 2
-        checks = [("span", self.span, 0 < self.span / 2 + self.support_width / 2 < half),
-                  ("plate_width", self.plate_width, 0 < self.plate_width < self.span / 2),
-                  ("support_width", self.support_width, 0 < self.support_width < self.span / 2),
-                  ("max_deflection", self.max_deflection, 0 < self.max_deflection <= 1.0),
-                  ("increments", self.increments, 1 <= int(self.increments) == self.increments <= 200)]
+        checks = [
+            ("span", self.span, 0 < self.span / 2 + self.support_width / 2 < half),
+            ("plate_width", self.plate_width, 0 < self.plate_width < self.span / 2),
+            ("support_width", self.support_width, 0 < self.support_width < self.span / 2),
+            ("max_deflection", self.max_deflection, 0 < self.max_deflection <= 1.0),
+            ("increments", self.increments, 1 <= int(self.increments) == self.increments <= 200),
+        ]
         for name, value, ok in checks:
             if not ok:
                 raise InvalidDesign(name, value, "a positive value that fits the membrane")
@@ -133,8 +135,14 @@ def sub_patch(patch: Patch, keep: np.ndarray) -> Patch:
     new[keep] = np.arange(len(keep))
     nb = new[patch.neighbours]
     nb = nb[(nb >= 0).all(axis=1)]
-    return Patch(patch.design, patch.sites[keep], patch.centroids[keep], patch.angles[keep],
-                 patch.ring[keep], nb.reshape(-1, 2))
+    return Patch(
+        patch.design,
+        patch.sites[keep],
+        patch.centroids[keep],
+        patch.angles[keep],
+        patch.ring[keep],
+        nb.reshape(-1, 2),
+    )
 
 
 def _strips(setup: FlexureSetup) -> tuple[Polygon, list[Polygon]]:
@@ -203,8 +211,10 @@ def build_model(setup: FlexureSetup) -> FlexureModel:
     cond = condense(mm.K, T, retained)
     ns = len(sup_nodes)
     points = _plate_points(patch, plate) if patch is not None else []
-    return FlexureModel(setup, mm, patch, cond, n_q, n_q + np.arange(ns), n_q + ns + np.arange(len(plate_nodes)),
-                        points, time.perf_counter() - t0)
+    plate_idx = n_q + ns + np.arange(len(plate_nodes))
+    return FlexureModel(
+        setup, mm, patch, cond, n_q, n_q + np.arange(ns), plate_idx, points, time.perf_counter() - t0
+    )
 
 
 def _pins(xyz: Array, bottom: np.ndarray) -> np.ndarray:
@@ -229,8 +239,9 @@ def _plate_points(patch: Patch, plate: Polygon) -> list[tuple[int, Array]]:
         if inter.is_empty or inter.area < 1e-12:
             continue
         for xy in np.asarray(inter.exterior.coords)[:-1]:
-            out.append((i, np.array([xy[0] - patch.centroids[i, 0], xy[1] - patch.centroids[i, 1],
-                                     d.thickness])))
+            out.append(
+                (i, np.array([xy[0] - patch.centroids[i, 0], xy[1] - patch.centroids[i, 1], d.thickness]))
+            )
     return out
 
 
@@ -240,7 +251,8 @@ def _plate_rows(model: FlexureModel, z: Array, z_plate: float) -> tuple[Array, A
     G = np.zeros((m, len(z)))
     if model.patch is None:
         G[np.arange(m), model.plate_idx] = 1.0
-        return G, np.full(m, z_plate - model.setup.membrane.height), z[model.plate_idx] + model.setup.membrane.height - z_plate
+        H = model.setup.membrane.height
+        return G, np.full(m, z_plate - H), z[model.plate_idx] + H - z_plate
     h, over = np.zeros(m), np.zeros(m)
     q = z[: model.n_q].reshape(-1, 5)
     for k, (i, r) in enumerate(model.plate_points):
@@ -290,10 +302,12 @@ def _solve_level(model: FlexureModel, z: Array, w: float, inc: int) -> tuple[Arr
         step = float(np.max(np.abs(res.x - z)))
         z = res.x
         force = float(np.sum(res.z[: len(hp)]))
-        pen = max(0.0, float(np.max(_plate_rows(model, z, z_plate)[2], initial=0.0)), _contact_rows(model, z)[2])
+        over = float(np.max(_plate_rows(model, z, z_plate)[2], initial=0.0))
+        pen = max(0.0, over, _contact_rows(model, z)[2])
         if pen < PENETRATION_TOL and (step < 1e-10 or model.patch is None or it > 1):
             return z, force, it, pen
-    raise SolverFailure(setup.solver, "sequential QP did not converge", increment=inc, detail=f"penetration {pen:.3g}")
+    detail = f"penetration {pen:.3g}"
+    raise SolverFailure(setup.solver, "sequential QP did not converge", increment=inc, detail=detail)
 
 
 def run_flexure(setup: FlexureSetup) -> FlexureResult:
@@ -313,6 +327,20 @@ def run_flexure(setup: FlexureSetup) -> FlexureResult:
     C_f = float(ws[-1] / F[-1])
     mem = setup.membrane
     I_m = (mem.width if setup.axis == 1 else mem.length) * mem.height**3 / 12.0
-    return FlexureResult(ws, F, C_f, compliance_star(C_f, mem.E, I_m, 1.0),
-                         0 if model.patch is None else model.patch.n_scales, len(model.cond.retained), iters, pen,
-                         time.perf_counter() - t0, model.condense_s, z, {"model": model})
+    n_scales = 0 if model.patch is None else model.patch.n_scales
+    wall = time.perf_counter() - t0
+    Cf_star = compliance_star(C_f, mem.E, I_m, 1.0)
+    return FlexureResult(
+        ws,
+        F,
+        C_f,
+        Cf_star,
+        n_scales,
+        len(model.cond.retained),
+        iters,
+        pen,
+        wall,
+        model.condense_s,
+        z,
+        {"model": model},
+    )
