@@ -1,0 +1,117 @@
+"""Tests of qpscale.membrane: patch test, tie, condensation, locking (formulations/membrane.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from qpscale.errors import InvalidDesign
+from qpscale.membrane import (
+    MembraneMesh,
+    MembraneModel,
+    build_mesh,
+    condense,
+    generalised_map,
+    graded_axis,
+    node_dofs,
+    tie_rows,
+)
+
+
+def small(nu: float = 0.3, integration: str = "sri") -> MembraneMesh:
+    model = MembraneModel(length=2.0, width=2.0, height=1.0, nu=nu, h=0.5, nz=2, integration=integration)
+    return MembraneMesh(model, build_mesh(model))
+
+
+def test_graded_axis_has_breaks_and_spacing():
+    x = graded_axis(-5.0, 5.0, 0.5, (-4.25, 3.75, 0.1))
+    assert np.all(np.diff(x) <= 0.5 + 1e-12)
+    for b in (-5.0, -4.25, 0.1, 3.75, 5.0):
+        assert np.min(np.abs(x - b)) < 1e-12
+
+
+@pytest.mark.parametrize("nu", [0.3, 0.4999])
+def test_patch_test_linear_field_is_in_equilibrium(nu):
+    # A linear displacement field is reproduced exactly by trilinear hexahedra with either rule,
+    # so the internal nodes carry no force: round-off level relative to the boundary forces.
+    mm = small(nu)
+    xyz = mm.nodes
+    grad = np.array([[1e-2, 2e-3, -3e-3], [4e-3, -5e-3, 1e-3], [0.0, 7e-3, 2e-3]])
+    u = (xyz @ grad.T).ravel()
+    f = (mm.K @ u).reshape(-1, 3)
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    inner = np.all((xyz > lo + 1e-9) & (xyz < hi - 1e-9), axis=1)
+    assert inner.any()
+    assert np.abs(f[inner]).max() < 1e-10 * np.abs(f).max()
+
+
+def test_rigid_motions_carry_no_energy():
+    # Translations and small rotations are in the kernel of K (to round-off).
+    mm = small(0.4999)
+    xyz = mm.nodes
+    K = mm.K
+    for w in np.eye(3):
+        rot = np.cross(w, xyz).ravel()
+        assert np.abs(K @ rot).max() < 1e-9 * abs(K).max()
+    for k in range(3):
+        t = np.zeros_like(xyz)
+        t[:, k] = 1.0
+        assert np.abs(K @ t.ravel()).max() < 1e-9 * abs(K).max()
+
+
+def test_tie_rows_is_the_linearised_rigid_motion():
+    # Eq. (5) against u + phi x r with r = (x - c, 0) and phi = (phi_x, phi_y, 0).
+    rng = np.random.default_rng(1)
+    xy = rng.normal(size=(7, 2))
+    c = np.array([0.3, -0.2])
+    q = rng.normal(size=5)
+    u = (tie_rows(xy, c) @ q).reshape(-1, 3)
+    r = np.column_stack([xy - c, np.zeros(len(xy))])
+    expect = q[:3] + np.cross(np.array([q[3], q[4], 0.0]), r)
+    assert np.allclose(u, expect, atol=1e-14)
+
+
+def test_no_ties_gives_the_identity_map():
+    # Removing every scale leaves the membrane itself: T is the identity on the unpinned DOFs.
+    mm = small()
+    T, gen_of = generalised_map(len(mm.nodes), [], np.array([0, 1]))
+    assert T.shape == (3 * len(mm.nodes), 3 * len(mm.nodes) - 2)
+    assert (gen_of[:2] == -1).all() and abs(T.T @ T - sp.identity(T.shape[1])).max() == 0
+
+
+def test_node_bonded_twice_is_rejected():
+    mm = small()
+    nodes = np.array([3, 4])
+    tie = (nodes, mm.nodes[nodes, :2], np.zeros(2))
+    with pytest.raises(InvalidDesign):
+        generalised_map(len(mm.nodes), [tie, tie], np.zeros(0, int))
+
+
+def test_condensation_matches_a_direct_solve():
+    # Schur complement against solving the full system with the retained DOFs prescribed.
+    mm = small(0.45)
+    bottom = mm.face_nodes(False)
+    top = mm.face_nodes(True)
+    tie = (top[:5], mm.nodes[top[:5], :2], mm.nodes[top[2], :2])
+    T, gen_of = generalised_map(len(mm.nodes), [tie], node_dofs(bottom))
+    n = T.shape[1]
+    retained = np.r_[np.arange(n - 5, n), gen_of[3 * top[-3:] + 2]]
+    cond = condense(mm.K, T, retained)
+    zr = np.linspace(-1.0, 1.0, len(retained)) * 1e-2
+    Kg = (T.T @ mm.K @ T).toarray()
+    c = cond.condensed
+    zc = np.linalg.solve(Kg[np.ix_(c, c)], -Kg[np.ix_(c, retained)] @ zr)
+    z = np.zeros(n)
+    z[retained], z[c] = zr, zc
+    assert np.isclose(zr @ cond.S @ zr, z @ Kg @ z, rtol=1e-10)
+    u = cond.displacement(zr)
+    assert np.allclose(u[tie[0]], (tie_rows(tie[1], tie[2]) @ zr[:5]).reshape(-1, 3), atol=1e-14)
+
+
+def test_model_validation():
+    with pytest.raises(InvalidDesign, match="nu_m"):
+        MembraneModel(nu=0.6)
+    with pytest.raises(InvalidDesign, match="integration"):
+        MembraneModel(integration="bbar?")
+    assert MembraneModel(nu=0.5).nu_eff == pytest.approx(0.4999)
