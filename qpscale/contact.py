@@ -12,12 +12,12 @@ g_k = n_k . (xb_k - xa_k) is positive when apart, and a multiplier lam_k >= 0 pu
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
 
-from .contact_clip import KIND_NAMES, Points, edge_points, face_points
+from .contact_clip import KIND_NAMES, Points, edge_points, face_points, plane_points
 from .contact_sat import World, bodies_of, place, separate, tangents
 from .errors import InvalidDesign
 from .geometry import Array
@@ -36,6 +36,10 @@ class ContactSettings:
         Pairs and points whose separation is below this enter the contact set, in L, > 0.
     tie_tol : float
         Axes whose separation is within this of the best all contribute, in L, >= 0.
+    edge_bias : float
+        Hysteresis of the axis choice, in L, >= tie_tol: given the previous linearisation's set, a
+        piece pair switches between face rows and an edge-edge row only when the other kind of
+        axis is better by more than this (formulations/contact.md sec. 6).
     sampling : int
         Extra equally spaced points on every clipped edge (completeness checks), >= 0.
     mode : str
@@ -45,6 +49,7 @@ class ContactSettings:
 
     margin: float = 0.1
     tie_tol: float = 1e-9
+    edge_bias: float = 1e-3
     sampling: int = 0
     mode: str = "full"
 
@@ -53,6 +58,8 @@ class ContactSettings:
             raise InvalidDesign("margin", self.margin, "(0, 10] (in L)")
         if not (np.isfinite(self.tie_tol) and 0.0 <= self.tie_tol < self.margin):
             raise InvalidDesign("tie_tol", self.tie_tol, "[0, margin) (in L)")
+        if not (np.isfinite(self.edge_bias) and self.tie_tol <= self.edge_bias < self.margin):
+            raise InvalidDesign("edge_bias", self.edge_bias, "[tie_tol, margin) (in L)")
         if not (int(self.sampling) == self.sampling and 0 <= self.sampling <= 1000):
             raise InvalidDesign("sampling", self.sampling, "integers in [0, 1000]")
         if self.mode not in MODES:
@@ -83,6 +90,9 @@ class ContactSet:
         Configuration the set was detected at.
     centre : ndarray (n, 3)
         Current reference points c_i at that configuration, in L.
+    axis_kind : dict
+        ``(a, piece_a, b, piece_b) -> ("face", side, f) | ("edge", ci, cj)``: the separating axis
+        that gave the rows of each piece pair; passed back as ``previous`` to keep it sticky.
     """
 
     a: np.ndarray
@@ -97,6 +107,7 @@ class ContactSet:
     labels: tuple[str, ...]
     q: Array
     centre: Array
+    axis_kind: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         m = len(self.a)
@@ -152,7 +163,11 @@ def penetration(patch: Patch, q: Array, pairs: np.ndarray | None = None) -> floa
 
 
 def detect_contacts(
-    patch: Patch, q: Array, settings: ContactSettings | None = None, pairs: np.ndarray | None = None
+    patch: Patch,
+    q: Array,
+    settings: ContactSettings | None = None,
+    pairs: np.ndarray | None = None,
+    previous: ContactSet | None = None,
 ) -> ContactSet:
     """Contact points of every candidate pair closer than ``settings.margin`` (section 3).
 
@@ -164,6 +179,9 @@ def detect_contacts(
     settings : ContactSettings, optional
     pairs : ndarray (S, 2) of int, optional
         Candidate scale pairs; default ``patch.contact_pairs``.
+    previous : ContactSet, optional
+        The set of the previous linearisation: a piece pair keeps the kind of axis (face or
+        edge-edge) it had unless the other kind beats it by more than ``settings.edge_bias``.
 
     Returns
     -------
@@ -185,13 +203,74 @@ def detect_contacts(
     sat = separate(world, pairs)
     active = sat.sep < settings.margin
     best_face = np.maximum(sat.face_a.max(axis=1), sat.face_b.max(axis=1))
-    # Face axes win ties with edge axes: their clipping already holds the edge crossings.
-    use_edge = sat.edge.reshape(len(sat.sep), -1).max(axis=1) > best_face + settings.tie_tol
+    best_edge = sat.edge.reshape(len(sat.sep), -1).max(axis=1)
+    use_edge = _choose_edge(sat, best_face, best_edge, previous, settings)
+    face_memory, edge_memory = _axis_memory(sat, previous)
+    faces = face_points(world, sat, bodies, active & ~use_edge, settings, face_memory)
+    # A face axis whose clipping is empty (a corner facing a corner) would leave an active pair
+    # without rows: its face plane then constrains the nearby vertices (formulations/contact.md sec. 6).
+    empty = active & ~use_edge & ~np.isin(np.arange(len(sat.sep)), faces.pp) & (settings.mode != "vertex")
     parts = [
-        face_points(world, sat, bodies, active & ~use_edge, settings),
-        edge_points(world, sat, bodies, active & use_edge, settings),
+        faces,
+        plane_points(world, sat, bodies, empty, settings, face_memory),
+        edge_points(world, sat, bodies, active & use_edge, settings, edge_memory),
     ]
-    return _assemble(world, q, sat, parts, settings)
+    return replace(_assemble(world, q, sat, parts, settings), axis_kind=_axis_kinds(sat, parts))
+
+
+def _axis_kinds(sat, parts: list[Points]) -> dict:
+    """Per active piece pair, the axis its rows came from: ("face", side, f) or ("edge", ci, cj)."""
+    kinds: dict[tuple[int, int, int, int], tuple[str, int, int]] = {}
+    for part in parts:
+        for k, label in zip(part.pp.tolist(), part.label):
+            key = (int(sat.a[k]), int(sat.pa[k]), int(sat.b[k]), int(sat.pb[k]))
+            if key in kinds:
+                continue
+            head = label.split(":")[0]
+            if head.startswith("F"):
+                kinds[key] = ("face", 0 if head[1] == "a" else 1, int(head[2:].split("/")[0]))
+            elif ":c" in label:
+                ci, cj = label.split(":c")[1].split("/")
+                kinds[key] = ("edge", int(ci), int(cj))
+    return kinds
+
+
+def _axis_memory(sat, previous: ContactSet | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(side, face) and (edge class, edge class) each piece pair used last time (-1 where none)."""
+    if previous is None or not previous.axis_kind:
+        return None, None
+    faces = np.full((len(sat.sep), 2), -1, dtype=int)
+    edges = np.full((len(sat.sep), 2), -1, dtype=int)
+    for k in range(len(sat.sep)):
+        kind = previous.axis_kind.get((int(sat.a[k]), int(sat.pa[k]), int(sat.b[k]), int(sat.pb[k])))
+        if kind is not None:
+            (faces if kind[0] == "face" else edges)[k] = kind[1:]
+    return faces, edges
+
+
+def _choose_edge(
+    sat, best_face: Array, best_edge: Array, previous: ContactSet | None, settings: ContactSettings
+) -> np.ndarray:
+    """Which piece pairs take their rows from an edge-edge axis (formulations/contact.md sec. 6).
+
+    Without memory the better axis wins, faces winning ties (their clipping already holds the
+    edge crossings).  With memory the previous kind is kept unless the other kind is better by
+    more than ``edge_bias``: near-parallel or touching edges make the two nearly equal, and a
+    choice by the sign of a round-off-sized difference makes the sequential QP cycle.
+    """
+    use_edge = best_edge > best_face + settings.tie_tol
+    if previous is None or not previous.axis_kind:
+        return use_edge
+    memory = previous.axis_kind
+    for k in range(len(sat.sep)):
+        kind = memory.get((int(sat.a[k]), int(sat.pa[k]), int(sat.b[k]), int(sat.pb[k])))
+        if kind is None:
+            continue
+        if kind[0] == "edge":
+            use_edge[k] = best_edge[k] >= best_face[k] - settings.edge_bias
+        else:
+            use_edge[k] = best_edge[k] > best_face[k] + settings.edge_bias
+    return use_edge
 
 
 def _assemble(world: World, q: Array, sat, parts: list[Points], settings: ContactSettings) -> ContactSet:

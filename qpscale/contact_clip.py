@@ -88,13 +88,30 @@ def clip(
     return poly, count, code
 
 
-def _face_tasks(sat: SAT, active: np.ndarray, tie_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(piece pair, reference side 0=a/1=b, reference face) of every tied best face axis, eq. (8)."""
-    best = np.maximum(sat.face_a.max(axis=1), sat.face_b.max(axis=1))[:, None] - tie_tol
+def _face_tasks(
+    sat: SAT, active: np.ndarray, tie_tol: float, memory: np.ndarray | None = None, bias: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(piece pair, reference side 0=a/1=b, reference face) of every tied best face axis, eq. (8).
+
+    ``memory`` ``(pairs, 2)`` = (side, face) used in the previous linearisation (-1: none): it is
+    kept alone while its separation is within ``bias`` of the best face axis (sec. 6).
+    """
+    best_face = np.maximum(sat.face_a.max(axis=1), sat.face_b.max(axis=1))
+    best = best_face[:, None] - tie_tol
+    sticky = np.zeros(len(best_face), dtype=bool)
+    if memory is not None:
+        rows = np.flatnonzero(memory[:, 0] >= 0)
+        seps = np.where(
+            memory[rows, 0] == 0, sat.face_a[rows, memory[rows, 1]], sat.face_b[rows, memory[rows, 1]]
+        )
+        sticky[rows[seps >= best_face[rows] - bias]] = True
     out = []
     for side, seps in enumerate((sat.face_a, sat.face_b)):
-        p, f = np.nonzero((seps >= best) & active[:, None])
+        p, f = np.nonzero((seps >= best) & (active & ~sticky)[:, None])
         out.append((p, np.full(len(p), side), f))
+    keep = np.flatnonzero(sticky & active)
+    if memory is not None and len(keep):
+        out.append((keep, memory[keep, 0], memory[keep, 1]))
     return tuple(np.concatenate(x) for x in zip(*out))  # type: ignore[return-value]
 
 
@@ -104,9 +121,14 @@ def _gather_faces(V: Array, bodies: Bodies, f: np.ndarray) -> tuple[Array, np.nd
     return poly, bodies.face_size[f]
 
 
-def face_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, settings) -> Points:
-    """Contact points of every face axis within ``settings.tie_tol`` of the best one (eqs. (8)-(12))."""
-    p, side, f = _face_tasks(sat, active, settings.tie_tol)
+def face_points(
+    world: World, sat: SAT, bodies: Bodies, active: np.ndarray, settings, memory: np.ndarray | None = None
+) -> Points:
+    """Contact points of every face axis within ``settings.tie_tol`` of the best one (eqs. (8)-(12)).
+
+    ``memory``: the (side, face) of each piece pair's previous reference face, see ``_face_tasks``.
+    """
+    p, side, f = _face_tasks(sat, active, settings.tie_tol, memory, settings.edge_bias)
     VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
     NA, NB = world.normals[sat.a[p], sat.pa[p]], world.normals[sat.b[p], sat.pb[p]]
     on_a = (side == 0)[:, None, None]
@@ -139,6 +161,31 @@ def face_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, sett
         keep &= (code >= 0) & (code < 100)
     ti, mi = np.nonzero(keep)
     return _face_records(p[t], side[t], f[t], g, n_ref, pts, sep, kind, code, ti, mi)
+
+
+def plane_points(
+    world: World, sat: SAT, bodies: Bodies, active: np.ndarray, settings, memory: np.ndarray | None = None
+) -> Points:
+    """Vertex rows against the best face plane, unclipped, for pairs whose clipping is empty (sec. 6).
+
+    The best face plane separates the pieces, so every vertex of the other piece within the
+    margin of it is constrained to stay outside: a valid certificate when the nearest features are
+    off the face (a corner facing a corner), and symmetric because tied faces all contribute.
+    """
+    if not active.any():
+        return empty_points()
+    p, side, f = _face_tasks(sat, active, settings.tie_tol, memory, settings.edge_bias)
+    VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
+    NA, NB = world.normals[sat.a[p], sat.pa[p]], world.normals[sat.b[p], sat.pb[p]]
+    on_a = (side == 0)[:, None, None]
+    Vref, Vinc = np.where(on_a, VA, VB), np.where(on_a, VB, VA)
+    n_ref = np.where(on_a[:, :, 0], NA[np.arange(len(p)), f], NB[np.arange(len(p)), f])
+    ref_point = Vref[np.arange(len(p)), bodies.faces[f, 0]]
+    sep = np.einsum("tvk,tk->tv", Vinc - ref_point[:, None, :], n_ref)
+    code = np.broadcast_to(np.arange(Vinc.shape[1]), sep.shape)
+    ti, mi = np.nonzero(sep < settings.margin)
+    kind = np.full(sep.shape, VERTEX_FACE)
+    return _face_records(p, side, f, np.full(len(p), -1), n_ref, Vinc, sep, kind, code, ti, mi)
 
 
 def _face_records(p, side, f, g, n_ref, pts, sep, kind, code, ti, mi) -> Points:
@@ -193,13 +240,27 @@ def segment_closest(p1: Array, q1: Array, p2: Array, q2: Array) -> tuple[Array, 
     return p1 + s[:, None] * d1, p2 + t[:, None] * d2
 
 
-def edge_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, settings) -> Points:
-    """Closest points of the supporting edges for every tied best edge axis (eq. (13))."""
+def edge_points(
+    world: World, sat: SAT, bodies: Bodies, active: np.ndarray, settings, memory: np.ndarray | None = None
+) -> Points:
+    """Closest points of the supporting edges for every tied best edge axis (eq. (13)).
+
+    ``memory`` ``(pairs, 2)`` holds the edge classes each piece pair used in the previous
+    linearisation (-1: none); a remembered axis is kept while it is within ``settings.edge_bias``
+    of the best, so a corner touching a corner does not flip between edge pairs (sec. 6).
+    """
     if settings.mode == "vertex" or not active.any():
         return empty_points()
     flat = sat.edge.reshape(len(sat.sep), -1)
     best = flat.max(axis=1)[:, None, None] - settings.tie_tol
-    p, ci, cj = np.nonzero((sat.edge >= best) & active[:, None, None])
+    chosen = sat.edge >= best
+    if memory is not None:
+        rows = np.flatnonzero(memory[:, 0] >= 0)
+        kept = sat.edge[rows, memory[rows, 0], memory[rows, 1]] >= flat[rows].max(axis=1) - settings.edge_bias
+        rows = rows[kept]
+        chosen[rows] = False
+        chosen[rows, memory[rows, 0], memory[rows, 1]] = True
+    p, ci, cj = np.nonzero(chosen & active[:, None, None])
     u = sat.edge_axis[p, ci, cj]
     VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
     ea = _support_edge(VA, bodies, ci, u)
@@ -210,7 +271,10 @@ def edge_points(world: World, sat: SAT, bodies: Bodies, active: np.ndarray, sett
     n = _edge_normal(u, xb - xa)
     gap = np.einsum("tk,tk->t", n, xb - xa)
     keep = gap < settings.margin
-    labels = [f"E{i}/{j}" for i, j in zip(ea[keep].tolist(), eb[keep].tolist())]
+    labels = [
+        f"E{i}/{j}:c{k}/{m}"
+        for i, j, k, m in zip(ea[keep].tolist(), eb[keep].tolist(), ci[keep].tolist(), cj[keep].tolist())
+    ]
     kind = np.full(int(keep.sum()), EDGE_EDGE)
     return Points(p[keep], n[keep], xa[keep], xb[keep], gap[keep], kind, labels)
 
