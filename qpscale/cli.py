@@ -171,13 +171,131 @@ def geometry(
     emit(payload, as_json, summary)
 
 
+def _progress(description: str):
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    return Progress(
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
+        TimeElapsedColumn(),
+        console=err_console,
+        transient=True,
+        disable=not err_console.is_terminal,
+    )
+
+
+@app.command()
+@handles_errors
+def puncture(
+    shape: str = ShapeOpt,
+    tiling: str | None = TilingOpt,
+    slant: float = SlantOpt,
+    slant_dir: float = SlantDirOpt,
+    gap: float = GapOpt,
+    thickness: float = ThicknessOpt,
+    rings: int = RingsOpt,
+    isolated: bool = typer.Option(False, "--isolated", help="The punctured scale alone (rings = 0)."),
+    interaction: str = typer.Option(
+        "full", "--interaction", help="full, substrate (contact off) or contact."
+    ),
+    coupling_factor: float | None = typer.Option(
+        None,
+        "--coupling-factor",
+        help="Substrate coupling f in [0, 1] (default 1; 0.04 for --interaction contact).",
+    ),
+    solver: str = typer.Option("clarabel", "--solver", help="clarabel, osqp, cvxpy or qpsolvers:<name>."),
+    accuracy: str = typer.Option("high", "--accuracy", help="QP tolerance: high 1e-9, mid 1e-6, low 1e-3."),
+    phi_c: float = typer.Option(13.0, "--phi-c", help="Critical tilt, degrees, (0, 60]."),
+    nu: float = typer.Option(0.5, "--nu", help="Poisson's ratio of the substrate, [0, 0.5]."),
+    load_point: tuple[float, float] | None = typer.Option(
+        None,
+        "--load-point",
+        help="x y of the load point relative to the scale's reference point, in L "
+        "(default: the worst top-face vertex).",
+    ),
+    probe: bool = typer.Option(True, "--probe/--no-probe", help="Probe symmetric paths for a lower branch."),
+    E_s: float | None = typer.Option(
+        None, "--E-s", help="Substrate modulus in Pa, to report F_c in newtons."
+    ),
+    L_mm: float = typer.Option(2.0, "--L-mm", help="L in millimetres, to report F_c in newtons."),
+    vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
+    as_json: bool = JsonOpt,
+) -> None:
+    """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c."""
+    from .experiments.puncture import PunctureSetup, run_puncture
+    from .increment import SQPSettings
+    from .solvers import available_solvers
+
+    if solver not in available_solvers():
+        raise InvalidDesign("solver", solver, "{" + ", ".join(available_solvers()) + "}")
+    design = make_design(shape, tiling, slant, slant_dir, gap, thickness, 0 if isolated else rings)
+    setup = PunctureSetup(
+        design=design,
+        interaction=interaction,
+        coupling=coupling_factor,
+        nu=nu,
+        phi_c_deg=phi_c,
+        load_point=load_point,
+        probe=probe,
+        sqp=SQPSettings(solver=solver, accuracy=accuracy),
+    )
+    with _progress("puncture") as bar:
+        task = bar.add_task("puncture", total=None)
+        result = run_puncture(setup, progress=lambda msg: bar.update(task, description=f"puncture: {msg}"))
+    payload = {
+        "Fc_star": result.Fc_star,
+        "delta_c_star": result.delta_c_star,
+        "load_point": [float(v) for v in result.load_point],
+        "tilt_deg": float(result.tilt_deg[-1]),
+        "max_penetration": result.max_penetration,
+        "increments": len(result.states) - 1,
+        "solver": solver,
+        "wall_s": result.wall_s,
+        "qp_solves": result.qp_solves,
+        "n_scales": design.patch().n_scales,
+        "interaction": interaction,
+        "coupling_factor": setup.coupling_factor,
+        "curve": {
+            "w_star": result.w_star.tolist(),
+            "F_star": result.F_star.tolist(),
+            "tilt_deg": result.tilt_deg.tolist(),
+        },
+        "candidates": result.candidates,
+        "branch": result.branch,
+        "events": result.events,
+    }
+    if E_s is not None:
+        from .units import force_from_star
+
+        payload["Fc_N"] = force_from_star(result.Fc_star, E_s, nu, L_mm * 1e-3)
+    if vtk is not None:
+        from .export_vtk import write_puncture_series
+
+        payload["vtk"] = str(write_puncture_series(result, vtk))
+
+    def summary(p: dict[str, Any]) -> None:
+        extra = f" = {p['Fc_N']:.4g} N" if "Fc_N" in p else ""
+        branch = " (branched: followed the asymmetric path)" if p["branch"].get("branched") else ""
+        console.print(
+            f"[bold]{design.shape} ({design.tiling})[/], {p['n_scales']} scales, {interaction}: "
+            f"F_c* = {p['Fc_star']:.6g}{extra} at tilt {p['tilt_deg']:.4g} deg, load point "
+            f"({p['load_point'][0]:.3f}, {p['load_point'][1]:.3f}), delta_c* = {p['delta_c_star']:.4g}"
+            f"{branch}; {p['increments']} increments, {p['qp_solves']} QP paths, "
+            f"max penetration {p['max_penetration']:.2g} L, {p['wall_s']:.2f} s"
+        )
+
+    emit(payload, as_json, summary)
+
+
 _DOF_KEYS = ("Kx", "Ky", "Kz", "Kphix", "Kphiy")
 
 
 @app.command()
 @handles_errors
 def substrate(
-    shape: str = ShapeOpt, tiling: str | None = TilingOpt, gap: float = GapOpt,
+    shape: str = ShapeOpt,
+    tiling: str | None = TilingOpt,
+    gap: float = GapOpt,
     nu: float = typer.Option(0.5, "--nu", help="Poisson's ratio of the substrate, [0, 0.5]."),
     isolated: bool = typer.Option(False, "--isolated", help="Only the isolated single-punch stiffness."),
     refinement: int = typer.Option(6, "--refinement", help="Panel strips per fan triangle, [2, 16]."),
@@ -198,21 +316,39 @@ def substrate(
     else:
         cal = calibrate(design, model)
         near = [c for c in cal.couplings if c.source == 0]
-        payload = {"isolated": diag(cal.K_iso), "K0": diag(cal.K0[0]), "K0_block": cal.K0[0].tolist(),
-                   "neighbours": [{"offset": list(c.offset), "site": [*c.site, c.receiver], "K1": diag(c.K1),
-                                   "K1_block": c.K1.tolist(), "ratio": coupling_ratio(c.K1, cal.K0[0])}
-                                  for c in near],
-                   "asymmetry": cal.asymmetry, "n_panels": cal.n_panels}
+        payload = {
+            "isolated": diag(cal.K_iso),
+            "K0": diag(cal.K0[0]),
+            "K0_block": cal.K0[0].tolist(),
+            "neighbours": [
+                {
+                    "offset": list(c.offset),
+                    "site": [*c.site, c.receiver],
+                    "K1": diag(c.K1),
+                    "K1_block": c.K1.tolist(),
+                    "ratio": coupling_ratio(c.K1, cal.K0[0]),
+                }
+                for c in near
+            ],
+            "asymmetry": cal.asymmetry,
+            "n_panels": cal.n_panels,
+        }
     payload.update({"shape": design.shape, "tiling": design.tiling, "gap": gap, "nu": nu})
 
     def summary(p: dict[str, Any]) -> None:
-        console.print(f"[bold]{p['shape']} ({p['tiling']})[/], nu = {p['nu']}: isolated "
-                      + ", ".join(f"{k} {v:.4g}" for k, v in p["isolated"].items()))
+        console.print(
+            f"[bold]{p['shape']} ({p['tiling']})[/], nu = {p['nu']}: isolated "
+            + ", ".join(f"{k} {v:.4g}" for k, v in p["isolated"].items())
+        )
         if "K0" in p:
-            console.print("K0 " + ", ".join(f"{k} {v:.4g}" for k, v in p["K0"].items())
-                          + f"; {len(p['neighbours'])} coupling blocks, asymmetry {p['asymmetry']:.2g}")
+            console.print(
+                "K0 "
+                + ", ".join(f"{k} {v:.4g}" for k, v in p["K0"].items())
+                + f"; {len(p['neighbours'])} coupling blocks, asymmetry {p['asymmetry']:.2g}"
+            )
 
     emit(payload, as_json, summary)
+
 
 def main() -> None:
     """Console-script entry point."""

@@ -1,0 +1,420 @@
+"""The puncture test: a vertical displacement imposed on a top-face point of the punctured scale.
+
+Implements formulations/puncture.md: the path with adaptive increments (sec. 2), the exact
+location of the failure event tilt = phi_c (sec. 3), the stability probe of symmetric paths
+(sec. 4) and the worst case over the top-face vertices distinct under the design's symmetry
+(sec. 5).  All forces are F* (E* = L = 1, formulations/normalisation.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..contact import ContactSettings
+from ..errors import InvalidDesign, SolverFailure
+from ..geometry import tilt
+from ..increment import Equilibrium, LoadPoint, SQPSettings, solve_equilibrium
+from ..substrate import SubstrateModel, stiffness_matrix
+from ..tiling import Design, Patch
+from .symmetry import map_dofs, mirror_through, vertex_orbits
+
+log = logging.getLogger(__name__)
+
+INTERACTIONS = ("full", "substrate", "contact")
+PAPER_CONTACT_COUPLING = 0.04
+
+
+@dataclass(frozen=True)
+class PunctureSetup:
+    """Everything that defines one puncture run.
+
+    Parameters
+    ----------
+    design : Design
+        Shape, tiling, slant, gap, thickness and rings (rings = 0: the isolated scale).
+    interaction : str
+        ``full`` (substrate coupling and contact), ``substrate`` (contact off) or ``contact``
+        (coupling through the substrate scaled by ``coupling``), SPEC.md.
+    coupling : float or None
+        Coupling factor f in [0, 1]; None means 1 for ``full``/``substrate`` and 0.04 for ``contact``.
+    nu : float
+        Poisson's ratio of the substrate, [0, 0.5].
+    phi_c_deg : float
+        Critical tilt of the top face, degrees, (0, 60].
+    load_point : tuple or None
+        (x, y) in L, relative to the punctured scale's reference point, on its top face; None
+        evaluates the worst top-face vertex.
+    increments : int
+        Target number of increments up to failure (the adaptive step starts from it), >= 2.
+    """
+
+    design: Design = field(default_factory=Design)
+    interaction: str = "full"
+    coupling: float | None = None
+    nu: float = 0.5
+    phi_c_deg: float = 13.0
+    load_point: tuple[float, float] | None = None
+    fidelity: str = "bem"
+    sqp: SQPSettings = field(default_factory=SQPSettings)
+    contact: ContactSettings = field(default_factory=ContactSettings)
+    increments: int = 16
+    max_increments: int = 400
+    probe: bool = True
+
+    def __post_init__(self) -> None:
+        if self.interaction not in INTERACTIONS:
+            raise InvalidDesign("interaction", self.interaction, "{" + ", ".join(INTERACTIONS) + "}")
+        if self.coupling is not None and not 0.0 <= self.coupling <= 1.0:
+            raise InvalidDesign("coupling", self.coupling, "[0, 1]")
+        if not 0.0 < self.phi_c_deg <= 60.0:
+            raise InvalidDesign("phi_c_deg", self.phi_c_deg, "(0, 60]")
+        if not 0.0 <= self.nu <= 0.5:
+            raise InvalidDesign("nu", self.nu, "[0, 0.5]")
+        if not 2 <= self.increments <= self.max_increments:
+            raise InvalidDesign("increments", self.increments, f"[2, {self.max_increments}]")
+
+    @property
+    def coupling_factor(self) -> float:
+        if self.coupling is not None:
+            return float(self.coupling)
+        return PAPER_CONTACT_COUPLING if self.interaction == "contact" else 1.0
+
+    @property
+    def contact_on(self) -> bool:
+        return self.interaction != "substrate" and self.design.rings > 0
+
+
+@dataclass
+class PunctureResult:
+    """One puncture path up to the failure tilt.
+
+    Attributes
+    ----------
+    Fc_star : float
+        Puncture resistance F_c* at tilt = phi_c exactly.
+    delta_c_star : float
+        In-plane distance from the reference point to the load point, delta_c / L.
+    load_point : ndarray (2,)
+        The load point relative to the reference point, in L.
+    states : list of Equilibrium
+        Converged states from the unloaded one to failure (q, F, contact forces).
+    events : list of dict
+        Located events: contact set changes and the failure, with their displacement.
+    branch : dict
+        What the stability probe found (``branched``, ``delta``, ``followed``).
+    """
+
+    setup: PunctureSetup
+    Fc_star: float
+    delta_c_star: float
+    load_point: np.ndarray
+    states: list[Equilibrium]
+    events: list[dict]
+    branch: dict
+    wall_s: float
+    qp_solves: int
+    candidates: list[dict] = field(default_factory=list)
+
+    @property
+    def w_star(self) -> np.ndarray:
+        return np.array([s.delta for s in self.states])
+
+    @property
+    def F_star(self) -> np.ndarray:
+        return np.array([s.F for s in self.states])
+
+    @property
+    def tilt_deg(self) -> np.ndarray:
+        return np.rad2deg([tilt(s.q[0, 3:5]) for s in self.states])
+
+    @property
+    def max_penetration(self) -> float:
+        return float(max(s.penetration for s in self.states))
+
+
+def build_model(setup: PunctureSetup) -> tuple[Patch, object]:
+    """The patch and its substrate stiffness K(f) (sparse, 5n x 5n, E* = L = 1)."""
+    patch = setup.design.patch()
+    model = SubstrateModel(nu=setup.nu, fidelity=setup.fidelity, coupling=setup.coupling_factor)
+    return patch, stiffness_matrix(patch, model)
+
+
+def top_vertices(patch: Patch) -> np.ndarray:
+    """Top-face vertices ``(n, 2)`` of the punctured scale relative to its reference point."""
+    return patch.prism(0).vertices[patch.prism(0).n_base :, :2]
+
+
+def _load_point(patch: Patch, xy: tuple[float, float] | np.ndarray) -> LoadPoint:
+    return LoadPoint(0, np.array([xy[0], xy[1], patch.design.thickness]))
+
+
+class _Path:
+    """State of one loading path: the solver closure, counters, events."""
+
+    def __init__(self, setup: PunctureSetup, patch: Patch, K: object, load: LoadPoint) -> None:
+        self.setup, self.patch, self.K, self.load = setup, patch, K, load
+        self.contact = setup.contact if setup.contact_on else None
+        self.phi_c = np.deg2rad(setup.phi_c_deg)
+        self.solves = 0
+        self.events: list[dict] = []
+
+    def solve(self, start: Equilibrium, delta: float, index: int) -> Equilibrium:
+        self.solves += 1
+        return solve_equilibrium(
+            self.patch,
+            self.K,
+            start.q,
+            self.load,
+            delta,
+            self.contact,  # type: ignore[arg-type]
+            self.setup.sqp,
+            increment=index,
+            previous=start.contacts,
+        )
+
+    def tilt_of(self, eq: Equilibrium) -> float:
+        return tilt(eq.q[self.load.scale, 3:5])
+
+    def first_step(self, origin: Equilibrium) -> float:
+        """Step from the linear response: delta at failure ~ phi_c / (d tilt / d delta)."""
+        probe = 1e-4
+        eq = self.solve(origin, probe, 0)
+        rate = self.tilt_of(eq) / probe
+        if not rate > 0:
+            raise SolverFailure(self.setup.sqp.solver, "load does not tilt the scale", 0)
+        return self.phi_c / rate / self.setup.increments
+
+    def locate_failure(self, lo: Equilibrium, hi: Equilibrium, index: int) -> Equilibrium:
+        """Illinois regula falsi on tilt(delta) - phi_c between two converged states (sec. 3)."""
+        f_lo, f_hi = self.tilt_of(lo) - self.phi_c, self.tilt_of(hi) - self.phi_c
+        a, b, side = lo, hi, 0
+        for _ in range(60):
+            d = (a.delta * f_hi - b.delta * f_lo) / (f_hi - f_lo)
+            eq = self.solve(a, d, index)
+            f = self.tilt_of(eq) - self.phi_c
+            if abs(f) <= 1e-12 * self.phi_c or abs(b.delta - a.delta) <= 1e-15:
+                return eq
+            if f < 0:
+                a, f_lo = eq, f
+                if side == -1:
+                    f_hi /= 2
+                side = -1
+            else:
+                b, f_hi = eq, f
+                if side == 1:
+                    f_lo /= 2
+                side = 1
+        raise SolverFailure(self.setup.sqp.solver, "failure tilt not located", index)
+
+    def origin(self) -> Equilibrium:
+        return Equilibrium(
+            q=np.zeros((self.patch.n_scales, 5)),
+            delta=0.0,
+            F=0.0,
+            contacts=None,
+            lam=np.zeros(0),
+            iterations=0,
+            penetration=0.0,
+        )
+
+    def run(self, states: list[Equilibrium] | None = None, step: float | None = None) -> list[Equilibrium]:
+        """Step the load until the tilt reaches phi_c; continue from ``states`` if given."""
+        states = list(states) if states else [self.origin()]
+        step = step if step is not None else self.first_step(states[0])
+        min_step, max_step = step * 1e-4, step * 100
+        while len(states) <= self.setup.max_increments:
+            last = states[-1]
+            try:
+                eq = self.solve(_predict(states, last.delta + step), last.delta + step, len(states))
+            except SolverFailure:
+                step /= 2
+                if step < min_step:
+                    raise
+                continue
+            if self.tilt_of(eq) >= self.phi_c:
+                final = self.locate_failure(last, eq, len(states))
+                self.events.append(
+                    {"kind": "failure", "delta": final.delta, "tilt_deg": self.setup.phi_c_deg}
+                )
+                states.append(final)
+                return states
+            self._record_contact_change(last, eq)
+            states.append(eq)
+            step = min(max_step, step * _growth(eq.iterations), self._remaining(states))
+        raise SolverFailure(
+            self.setup.sqp.solver,
+            "failure tilt not reached",
+            len(states),
+            f"tilt {np.rad2deg(self.tilt_of(states[-1])):.3f} deg after {len(states)} increments",
+        )
+
+    def _remaining(self, states: list[Equilibrium]) -> float:
+        """Largest step that keeps about ``increments`` states up to the predicted failure depth."""
+        if len(states) < 2:
+            return np.inf
+        a, b = states[-2], states[-1]
+        rate = (self.tilt_of(b) - self.tilt_of(a)) / (b.delta - a.delta)
+        if not rate > 0:
+            return np.inf
+        return 2.0 * (b.delta + (self.phi_c - self.tilt_of(b)) / rate) / self.setup.increments
+
+    def _record_contact_change(self, before: Equilibrium, after: Equilibrium) -> None:
+        changed = _active_pairs(before) ^ _active_pairs(after)
+        if changed:
+            self.events.append(
+                {"kind": "contact", "delta_between": [before.delta, after.delta], "pairs": sorted(changed)}
+            )
+
+
+def _growth(iterations: int) -> float:
+    """Step factor from the sequential QP's effort at the last level."""
+    return 1.5 if iterations <= 8 else 1.0 if iterations <= 16 else 0.5
+
+
+def _predict(states: list[Equilibrium], delta: float) -> Equilibrium:
+    """Secant predictor: start the next level from the states extrapolated to ``delta``.
+
+    The sequential QP converges linearly from its start; extrapolating the last two states makes
+    the first residual second order in the step (formulations/puncture.md, sec. 2).
+    """
+    last = states[-1]
+    if len(states) < 2 or last.delta <= states[-2].delta:
+        return last
+    prev = states[-2]
+    ratio = (delta - last.delta) / (last.delta - prev.delta)
+    guess = last.q + ratio * (last.q - prev.q)
+    return Equilibrium(
+        q=guess,
+        delta=delta,
+        F=last.F,
+        contacts=last.contacts,
+        lam=last.lam,
+        iterations=0,
+        penetration=last.penetration,
+    )
+
+
+def _active_pairs(eq: Equilibrium) -> set[tuple[int, int]]:
+    if eq.contacts is None or len(eq.lam) == 0:
+        return set()
+    scale = max(1e-9, 1e-6 * float(np.max(eq.lam)))
+    on = eq.lam > scale
+    return {(int(a), int(b)) for a, b in zip(eq.contacts.a[on], eq.contacts.b[on])}
+
+
+def _one_point(
+    setup: PunctureSetup, patch: Patch, K: object, xy: np.ndarray
+) -> tuple[list[Equilibrium], list, int]:
+    path = _Path(setup, patch, K, _load_point(patch, xy))
+    states = path.run()
+    return states, path.events, path.solves
+
+
+def run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None = None) -> PunctureResult:
+    """Run the puncture test; with ``setup.load_point = None`` take the worst top-face vertex.
+
+    Examples
+    --------
+    >>> r = run_puncture(PunctureSetup(design=Design(rings=0)))
+    >>> 0.2 < r.Fc_star < 0.6
+    True
+    """
+    t0 = time.perf_counter()
+    patch, K = build_model(setup)
+    if setup.load_point is not None:
+        points = [np.asarray(setup.load_point, dtype=float)]
+    else:
+        verts = top_vertices(patch)
+        points = [verts[orbit[0]] for orbit in vertex_orbits(patch, verts)]
+    candidates, best = [], None
+    solves = 0
+    for xy in points:
+        if progress:
+            progress(f"load point ({xy[0]:.3f}, {xy[1]:.3f})")
+        states, events, n = _one_point(setup, patch, K, xy)
+        solves += n
+        candidates.append({"load_point": xy.tolist(), "Fc_star": states[-1].F})
+        if best is None or states[-1].F < best[0][-1].F:
+            best = (states, events, xy)
+    assert best is not None
+    states, events, xy = best
+    branch: dict = {"branched": False, "probe": "off"}
+    if setup.probe:
+        branch, states, events, n = probe_branch(setup, patch, K, xy, states, events)
+        solves += n
+    return PunctureResult(
+        setup=setup,
+        Fc_star=states[-1].F,
+        delta_c_star=float(np.hypot(*xy)),
+        load_point=np.asarray(xy),
+        states=states,
+        events=events,
+        branch=branch,
+        wall_s=time.perf_counter() - t0,
+        qp_solves=solves,
+        candidates=candidates,
+    )
+
+
+def _asymmetry(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> float:
+    return float(np.max(np.abs(q - map_dofs(q, M, perm))))
+
+
+def probe_branch(
+    setup: PunctureSetup,
+    patch: Patch,
+    K: object,
+    xy: np.ndarray,
+    states: list[Equilibrium],
+    events: list,
+) -> tuple[dict, list[Equilibrium], list, int]:
+    """Probe a symmetric path for a lower branch (formulations/puncture.md, sec. 4).
+
+    When the load point lies on a mirror line of the model, rerun with the point moved off the
+    line by eps = 1e-5 delta_c. A stable symmetric path changes F_c by O(eps^2) only; a path that
+    loses stability follows the asymmetric branch, and F_c drops by far more.  Then the branch
+    point is where the perturbed path's asymmetry outgrows eps, and the exact load point is
+    continued from the perturbed state just beyond it, on the branch with the lower F_c.
+    """
+    mirror = mirror_through(patch, xy)
+    if mirror is None:
+        return {"branched": False, "probe": "load point on no mirror line"}, states, events, 0
+    M, perm = mirror
+    normal = np.linalg.eigh(M)[1][:, 0]  # eigenvalue -1: across the mirror line
+    normal = normal * np.sign(normal[np.argmax(np.abs(normal))])  # deterministic side for every backend
+    eps = 1e-5 * max(1.0, float(np.hypot(*xy)))
+    pert, _, solves = _one_point(setup, patch, K, xy + eps * normal)
+    Fc, Fc_pert = states[-1].F, pert[-1].F
+    info = {
+        "branched": False,
+        "probe": "perturbed load point",
+        "eps": eps,
+        "Fc_symmetric": Fc,
+        "Fc_perturbed": Fc_pert,
+    }
+    if Fc - Fc_pert <= 1e-4 * abs(Fc):
+        return info, states, events, solves
+    growth = [_asymmetry(s.q, M, perm) / eps for s in pert]
+    k = next(i for i, g in enumerate(growth) if g > 100.0 * max(growth[1], 1.0))
+    path = _Path(setup, patch, K, _load_point(patch, xy))
+    on_branch = path.solve(pert[k], pert[k].delta, k)
+    before = [s for s in states if s.delta < pert[k].delta]
+    rest = path.run(before + [on_branch], step=pert[k].delta - pert[k - 1].delta)
+    info.update(
+        {
+            "branched": True,
+            "delta_branch": pert[k - 1].delta,
+            "followed": "asymmetric",
+            "side": normal.tolist(),
+            "Fc_symmetric": Fc,
+            "Fc_branch": rest[-1].F,
+        }
+    )
+    events = [e for e in events if e.get("delta", 0.0) < pert[k].delta] + path.events
+    events.append({"kind": "branch", "delta": pert[k - 1].delta, "Fc_symmetric": Fc})
+    return info, rest, events, solves + path.solves

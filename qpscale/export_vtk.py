@@ -1,0 +1,100 @@
+"""ParaView output through meshio: one .vtu per increment and a .pvd series.
+
+Implements the output described in formulations/puncture.md section 2 (what a state holds):
+scales as prism cells (the dart as its two convex pieces) with the displacement of every vertex,
+and contact forces as vertex cells carrying the force vector on the second body of each pair.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import meshio
+import numpy as np
+
+from .contact import ContactSet
+from .geometry import rotation_matrix
+from .tiling import Patch
+
+# VTK prism cells by number of base vertices; point order: base, then top (VTK's convention:
+# the wedge's base triangle is clockwise seen from above, the others counter-clockwise).
+_CELL = {3: "wedge", 4: "hexahedron", 6: "hexa_prism"}
+
+
+def scales_mesh(patch: Patch, q: np.ndarray) -> meshio.Mesh:
+    """The scales at configuration ``q`` ``(n, 5)`` as prism cells with point displacements."""
+    points, ref = [], []
+    cells: dict[str, list[np.ndarray]] = {}
+    ids: dict[str, list[int]] = {}
+    count = 0
+    for i in range(patch.n_scales):
+        c = np.append(patch.centroids[i], 0.0)
+        R = rotation_matrix(q[i, 3:5])
+        for prism in patch.convex_prisms(i):
+            X, nb = prism.vertices, prism.n_base
+            order = np.array([0, 2, 1, 3, 5, 4]) if nb == 3 else np.arange(2 * nb)
+            points.append(c + q[i, :3] + X @ R.T)
+            ref.append(c + X)
+            cells.setdefault(_CELL[nb], []).append(count + order)
+            ids.setdefault(_CELL[nb], []).append(i)
+            count += 2 * nb
+    pts = np.vstack(points)
+    blocks = [(kind, np.array(conn)) for kind, conn in cells.items()]
+    return meshio.Mesh(
+        pts,
+        blocks,
+        point_data={"displacement": pts - np.vstack(ref)},
+        cell_data={"scale": [np.array(ids[kind]) for kind in cells]},
+    )
+
+
+def contacts_mesh(cs: ContactSet | None, lam: np.ndarray) -> meshio.Mesh:
+    """Contact points as vertex cells with ``force`` (on body b, F*) and ``gap`` (L)."""
+    if cs is None or cs.m == 0:
+        pts = np.zeros((0, 3))
+        return meshio.Mesh(
+            pts,
+            [("vertex", np.zeros((0, 1), dtype=int))],
+            point_data={"force": np.zeros((0, 3)), "gap": np.zeros(0)},
+        )
+    lam = np.asarray(lam) if len(lam) == cs.m else np.zeros(cs.m)
+    return meshio.Mesh(
+        cs.xb,
+        [("vertex", np.arange(cs.m).reshape(-1, 1))],
+        point_data={"force": lam[:, None] * cs.normal, "gap": np.asarray(cs.gap)},
+    )
+
+
+def write_series(
+    directory: str | Path, name: str, frames: Sequence[dict[str, meshio.Mesh]], times: Sequence[float]
+) -> Path:
+    """Write ``frames`` (one dict part-name -> mesh per time) as .vtu files and one .pvd index."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for k, (frame, t) in enumerate(zip(frames, times)):
+        for part, (label, mesh) in enumerate(frame.items()):
+            fname = f"{name}_{label}_{k:04d}.vtu"
+            meshio.write(out / fname, mesh, file_format="vtu")
+            rows.append(
+                f'    <DataSet timestep="{t:.12g}" part="{part}" name={quoteattr(label)} file="{fname}"/>'
+            )
+    pvd = out / f"{name}.pvd"
+    pvd.write_text(
+        '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n  <Collection>\n'
+        + "\n".join(rows)
+        + "\n  </Collection>\n</VTKFile>\n"
+    )
+    return pvd
+
+
+def write_puncture_series(result: object, directory: str | Path) -> Path:
+    """The puncture path as a ParaView series; the time value is the puncture depth w* (in L)."""
+    patch = result.setup.design.patch()  # type: ignore[attr-defined]
+    states = result.states  # type: ignore[attr-defined]
+    frames = [
+        {"scales": scales_mesh(patch, s.q), "contacts": contacts_mesh(s.contacts, s.lam)} for s in states
+    ]
+    return write_series(directory, "puncture", frames, [s.delta for s in states])

@@ -1,0 +1,205 @@
+"""The increment QP of a loading path and the sequential-QP equilibrium at one load level.
+
+Implements formulations/increment.md: the prescribed displacement of a material point (1)-(3),
+the increment QP (4), the sequential QP at fixed load (5)-(6) and the acceptance checks (7).
+The generic QP record and the backends live in ``qp.py`` and ``solvers/``; the contact geometry
+in ``contact.py``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
+from .errors import SolverFailure
+from .geometry import rotation_matrix, tangent_operator
+from .qp import IncrementQP
+from .solvers import solve_qp
+from .tiling import Patch
+
+NDOF = 5
+
+
+@dataclass(frozen=True)
+class LoadPoint:
+    """A material point of one scale, driven vertically (the paper's rigid connector).
+
+    Parameters
+    ----------
+    scale : int
+        Index of the loaded scale in the patch.
+    X : ndarray (3,)
+        The point in the scale's body frame (reference point at the origin), in L.
+    """
+
+    scale: int
+    X: np.ndarray
+
+    def height_change(self, q: np.ndarray) -> float:
+        """Vertical displacement w(q) of the point, eq. (1); negative when pushed down."""
+        u = q[self.scale]
+        return float(u[2] + rotation_matrix(u[3:5])[2] @ self.X - self.X[2])
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        """dw/dq ``(5n,)``, eq. (2): e_z on u_z and T(phi)' (r x e_z) on the rotations."""
+        u = q[self.scale]
+        r = rotation_matrix(u[3:5]) @ self.X
+        a = np.zeros(q.size)
+        base = NDOF * self.scale
+        a[base + 2] = 1.0
+        a[base + 3 : base + 5] = tangent_operator(u[3:5]).T @ np.cross(r, [0.0, 0.0, 1.0])
+        return a
+
+    def world(self, patch: Patch, q: np.ndarray) -> np.ndarray:
+        """Current world position ``(3,)`` of the point."""
+        u = q[self.scale]
+        c = np.append(patch.centroids[self.scale], 0.0)
+        return c + u[:3] + rotation_matrix(u[3:5]) @ self.X
+
+
+@dataclass(frozen=True)
+class SQPSettings:
+    """Tolerances of the sequential QP at one load level (formulations/increment.md, sec. 4).
+
+    Parameters
+    ----------
+    solver : str
+        Backend key (``qpscale.solvers.available_solvers()``).
+    accuracy : str or float
+        KKT tolerance of each QP: ``high`` 1e-9, ``mid`` 1e-6, ``low`` 1e-3, or a float.
+    step_tol : float
+        Converged when the largest DOF increment is below this (L or rad).
+    penetration_tol : float
+        Largest exact overlap accepted after the rigid-body update, in L.
+    max_iter : int
+        Sequential QP iterations at one load level before giving up.
+    """
+
+    solver: str = "clarabel"
+    accuracy: str | float = "high"
+    step_tol: float = 1e-10
+    penetration_tol: float = 1e-9
+    max_iter: int = 60
+
+
+@dataclass
+class Equilibrium:
+    """A converged state at one load level.
+
+    Attributes
+    ----------
+    q : ndarray (n, 5)
+        DOFs of every scale.
+    delta : float
+        Prescribed downward displacement of the load point, in L.
+    F : float
+        Force pushing the load point down, F* (the loading constraint's multiplier).
+    contacts : ContactSet or None
+        The contact points of the last QP; ``lam`` their forces (F*), >= 0.
+    """
+
+    q: np.ndarray
+    delta: float
+    F: float
+    contacts: ContactSet | None
+    lam: np.ndarray
+    iterations: int
+    penetration: float
+    residuals: dict[str, float] = field(default_factory=dict)
+    build_s: float = 0.0
+    solve_s: float = 0.0
+
+
+def assemble_increment(
+    K: sp.csc_matrix,
+    q: np.ndarray,
+    load: LoadPoint,
+    delta: float,
+    contacts: ContactSet | None,
+    J: sp.csr_matrix | None,
+) -> IncrementQP:
+    """The QP (4): min 1/2 dq'K dq + (K q)'dq s.t. -J dq <= g, a'dq = -delta - w(q)."""
+    x = q.reshape(-1)
+    a = load.gradient(q)
+    A = sp.csc_matrix(a.reshape(1, -1))
+    b = np.array([-delta - load.height_change(q)])
+    if contacts is None or J is None or J.shape[0] == 0:
+        return IncrementQP(P=K, q=K @ x, A=A, b=b, row_labels_A=("load",))
+    return IncrementQP(
+        P=K,
+        q=K @ x,
+        G=sp.csc_matrix(-J),
+        h=np.asarray(contacts.gap, dtype=float),
+        A=A,
+        b=b,
+        row_labels_A=("load",),
+    )
+
+
+def solve_equilibrium(
+    patch: Patch,
+    K: sp.csc_matrix,
+    q0: np.ndarray,
+    load: LoadPoint,
+    delta: float,
+    contact: ContactSettings | None,
+    settings: SQPSettings,
+    increment: int | None = None,
+    previous: ContactSet | None = None,
+) -> Equilibrium:
+    """Sequential QP at a fixed load level, eqs. (5)-(7).
+
+    Linearise the loading constraint and the contact gaps at the current configuration, solve
+    the QP, update the configuration exactly (finite rotations), repeat until the update is
+    below ``step_tol``; then the exact penetration must be below ``penetration_tol``.
+    ``previous`` (the contact set of the starting state) keeps each pair's kind of separating
+    axis sticky across linearisations (formulations/contact.md sec. 6).
+
+    Raises
+    ------
+    SolverFailure
+        When a QP fails its checks, or the iteration does not converge.
+    """
+    q = np.array(q0, dtype=float, copy=True)
+    build_s = solve_s = 0.0
+    cs = previous
+    for it in range(1, settings.max_iter + 1):
+        t0 = time.perf_counter()
+        cs = detect_contacts(patch, q, contact, previous=cs) if contact is not None else None
+        J = gap_jacobian(cs, patch, q) if cs is not None and len(cs.gap) else None
+        qp = assemble_increment(K, q, load, delta, cs, J)
+        build_s += time.perf_counter() - t0
+        try:
+            res = solve_qp(qp, solver=settings.solver, accuracy=settings.accuracy, check=True)
+        except SolverFailure as exc:
+            raise SolverFailure(exc.solver, exc.status, increment, exc.detail) from exc
+        solve_s += res.build_s + res.solve_s
+        dq = res.x.reshape(q.shape)
+        q = q + dq
+        if np.max(np.abs(dq)) <= settings.step_tol:
+            pen = penetration(patch, q) if contact is not None else 0.0
+            if pen > settings.penetration_tol:
+                continue
+            lam = res.z if res.z is not None and cs is not None else np.zeros(0)
+            return Equilibrium(
+                q=q,
+                delta=delta,
+                F=float(res.y[0]),
+                contacts=cs,
+                lam=np.asarray(lam),
+                iterations=it,
+                penetration=pen,
+                residuals=dict(res.residuals),
+                build_s=build_s,
+                solve_s=solve_s,
+            )
+    raise SolverFailure(
+        settings.solver,
+        "sequential QP did not converge",
+        increment,
+        f"last |dq| = {np.max(np.abs(dq)):.3g} after {settings.max_iter} iterations",
+    )
