@@ -68,7 +68,7 @@ class FlexureSetup:
             raise InvalidDesign("mode", self.mode, "{" + ", ".join(MODES) + "}")
         if self.load_line not in ("x", "y"):
             raise InvalidDesign("load_line", self.load_line, "{x, y}")
-        half = min(self.membrane.length, self.membrane.width) / 2
+        half = (self.membrane.width if self.load_line == "x" else self.membrane.length) / 2
         checks = [
             ("span", self.span, 0 < self.span / 2 + self.support_width / 2 < half),
             ("plate_width", self.plate_width, 0 < self.plate_width < self.span / 2),
@@ -326,7 +326,7 @@ def run_flexure(setup: FlexureSetup) -> FlexureResult:
         raise SolverFailure(setup.solver, "no plate force", detail=f"F={F[-1]:.3g}")
     C_f = float(ws[-1] / F[-1])
     mem = setup.membrane
-    I_m = (mem.width if setup.axis == 1 else mem.length) * mem.height**3 / 12.0
+    I_m = (mem.length if setup.axis == 1 else mem.width) * mem.height**3 / 12.0
     n_scales = 0 if model.patch is None else model.patch.n_scales
     wall = time.perf_counter() - t0
     Cf_star = compliance_star(C_f, mem.E, I_m, 1.0)
