@@ -37,7 +37,8 @@ def test_narrow_bare_beam_against_timoshenko():
 
 def test_bare_curve_is_linear_and_refines():
     # Bare membrane: linear elasticity with supports that stay closed, so F is proportional to w (1e-4:
-    # the QPs are solved to 1e-6 absolute KKT residuals and F is ~0.07); and the default mesh agrees with a twice-finer in-plane mesh within 2 %.
+    # the QPs are solved to 1e-6 absolute KKT residuals and F is ~0.07); and the default mesh agrees with a
+    # twice-finer in-plane mesh within 2 %.
     r1 = run_flexure(FlexureSetup(mode="bare", membrane=COARSE, increments=3))
     assert np.allclose(r1.force / r1.force[-1], r1.deflection / r1.deflection[-1], atol=1e-4)
     r2 = run_flexure(FlexureSetup(mode="bare", membrane=MembraneModel(h=0.5, nz=3), increments=1))
@@ -84,7 +85,8 @@ def test_isolated_scale_moves_its_bonded_nodes_rigidly():
 
 def test_scaled_membrane_is_stiffer_and_symmetric_in_load_line():
     # Square arrayed: the 5x5 array is symmetric under x <-> y, so both load lines give the same C_f*
-    # (1e-4: QP residuals of 1e-6 on forces ~0.4); the array must be far less compliant than the isolated scale.
+    # (1e-4: QP residuals of 1e-6 on forces ~0.4); the array must be far less compliant than the isolated
+    # scale.
     iso = run_flexure(FlexureSetup(mode="isolated", increments=3))
     rx = run_flexure(FlexureSetup(mode="scaled", load_line="x", increments=3))
     ry = run_flexure(FlexureSetup(mode="scaled", load_line="y", increments=3))
