@@ -287,6 +287,54 @@ def puncture(
     emit(payload, as_json, summary)
 
 
+@app.command()
+@handles_errors
+def flexure(
+    shape: str = ShapeOpt,
+    tiling: str | None = TilingOpt,
+    slant: float = SlantOpt,
+    slant_dir: float = SlantDirOpt,
+    gap: float = GapOpt,
+    thickness: float = ThicknessOpt,
+    load_line: str = typer.Option("x", "--load-line", help="Direction of the loading plate: x or y."),
+    isolated: bool = typer.Option(False, "--isolated", help="One scale at the centre of the membrane."),
+    bare: bool = typer.Option(False, "--bare", help="The membrane alone, no scales."),
+    nu_m: float = typer.Option(0.5, "--nu-m", help="Poisson's ratio of the membrane, [0, 0.5]."),
+    mesh_h: float = typer.Option(0.5, "--mesh-h", help="In-plane element size, in L."),
+    solver: str = typer.Option("clarabel", "--solver", help="clarabel, osqp, cvxpy or qpsolvers:<name>."),
+    as_json: bool = JsonOpt,
+) -> None:
+    """Flexure: three-point bending of the membrane (bare, one scale, or covered), C_f*."""
+    from .experiments.flexure import FlexureSetup, run_flexure
+    from .membrane import MembraneModel
+
+    if isolated and bare:
+        raise InvalidDesign("--isolated/--bare", "both", "at most one of them")
+    design = make_design(shape, tiling, slant, slant_dir, gap, thickness, 2)
+    nz = max(2, int(round(1.5 / mesh_h)))
+    mode = "bare" if bare else "isolated" if isolated else "scaled"
+    setup = FlexureSetup(design=design, mode=mode, load_line=load_line,
+                         membrane=MembraneModel(nu=nu_m, h=mesh_h, nz=nz), solver=solver)
+    result = run_flexure(setup)
+    payload = {
+        "Cf_star": result.Cf_star,
+        "curve": {"deflection_star": result.deflection.tolist(), "F_star": result.force.tolist()},
+        "wall_s": result.wall_s,
+        "mode": mode,
+        "load_line": load_line,
+        "n_scales": result.n_scales,
+        "n_retained": result.n_retained,
+        "sqp_iterations": result.sqp_iterations,
+        "max_penetration": result.max_penetration,
+    }
+
+    def summary(p: dict[str, Any]) -> None:
+        console.print(f"[bold]{mode}[/] {design.shape} ({design.tiling}), load line {load_line}: "
+                      f"C_f* = {p['Cf_star']:.5g}, {p['n_scales']} scales, {p['wall_s']:.2f} s")
+
+    emit(payload, as_json, summary)
+
+
 _DOF_KEYS = ("Kx", "Ky", "Kz", "Kphix", "Kphiy")
 
 

@@ -238,7 +238,8 @@ def _plate_points(patch: Patch, plate: Polygon) -> list[tuple[int, Array]]:
         inter = top.intersection(plate)
         if inter.is_empty or inter.area < 1e-12:
             continue
-        for xy in np.asarray(inter.exterior.coords)[:-1]:
+        corners = [np.asarray(g.exterior.coords)[:-1] for g in shapely.get_parts(inter) if g.area > 1e-12]
+        for xy in np.vstack(corners):
             out.append(
                 (i, np.array([xy[0] - patch.centroids[i, 0], xy[1] - patch.centroids[i, 1], d.thickness]))
             )
