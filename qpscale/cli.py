@@ -226,8 +226,9 @@ def puncture(
     from .increment import SQPSettings
     from .solvers import available_solvers
 
-    if solver not in available_solvers():
-        raise InvalidDesign("solver", solver, "{" + ", ".join(available_solvers()) + "}")
+    allowed = [*available_solvers(), "penalty"]
+    if solver not in allowed:
+        raise InvalidDesign("solver", solver, "{" + ", ".join(allowed) + "}")
     design = make_design(shape, tiling, slant, slant_dir, gap, thickness, 0 if isolated else rings)
     setup = PunctureSetup(
         design=design,

@@ -51,6 +51,8 @@ class PunctureSetup:
         evaluates the worst top-face vertex.
     increments : int
         Target number of increments up to failure (the adaptive step starts from it), >= 2.
+    penalty : PenaltySettings or None
+        Settings of the penalty baseline, used when ``sqp.solver == "penalty"``.
     """
 
     design: Design = field(default_factory=Design)
@@ -65,6 +67,7 @@ class PunctureSetup:
     increments: int = 16
     max_increments: int = 400
     probe: bool = True
+    penalty: object | None = None
 
     def __post_init__(self) -> None:
         if self.interaction not in INTERACTIONS:
@@ -165,6 +168,12 @@ class _Path:
 
     def solve(self, start: Equilibrium, delta: float, index: int) -> Equilibrium:
         self.solves += 1
+        if self.setup.sqp.solver == "penalty":
+            from ..penalty import PenaltySettings, solve_equilibrium_penalty
+
+            settings = self.setup.penalty if self.setup.penalty is not None else PenaltySettings()
+            return solve_equilibrium_penalty(self.patch, self.K, start.q, self.load, delta, self.contact,
+                                             settings, increment=index, previous=start.contacts)
         return solve_equilibrium(
             self.patch,
             self.K,
