@@ -1,0 +1,146 @@
+"""Running one scene of the paper's studies and turning it into a table row (plus its curves).
+
+Implements the read-outs of formulations/puncture.md (F_c* at tilt = phi_c, delta_c*, worst
+vertex) and formulations/membrane.md eq. (14) (C_f*), and the isolated-scale estimate
+F_c* ~ phi_c K_phi* / delta_c* of formulations/normalisation.md.  A solver failure becomes the
+row's ``status`` (the solver's own word) with empty results: never a number.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import traceback
+
+import numpy as np
+
+from ..errors import QpscaleError, SolverFailure
+from ..units import force_from_star
+from .paper_scenes import Scene
+
+log = logging.getLogger(__name__)
+
+# Physical units of the validation scenes (Martini et al.): substrate and membrane moduli, L in m.
+E_S_PA = 150e3
+NU_S = 0.5
+E_M_PA = 700e3
+L_M = 2e-3
+COUPLING_THRESHOLD = 0.01
+
+
+def directional_rot_stiffness(K_iso: np.ndarray, load_xy: np.ndarray) -> float:
+    """K_phi* about the axis a vertical load at ``load_xy`` (in L) tilts the scale around.
+
+    A downward force at (x, y) has the moment (-y, x) F about the reference point, so the
+    stiffness is n' K_rr n with n = (-y, x) / |(x, y)| and K_rr the rotational 2x2 block.
+
+    >>> float(directional_rot_stiffness(np.diag([1, 1, 1, 2.0, 3.0]), np.array([1.0, 0.0])))
+    3.0
+    """
+    n = np.array([-load_xy[1], load_xy[0]]) / np.hypot(*load_xy)
+    return float(n @ np.asarray(K_iso)[3:5, 3:5] @ n)
+
+
+def effective_neighbours(scene: Scene) -> list[list[float]]:
+    """Offsets (dx, dy) of the neighbours whose coupling ratio |K1|/K0 exceeds 0.01 (paper Fig. 6a)."""
+    from ..substrate import SubstrateModel, calibrate, coupling_ratio
+
+    cal = calibrate(scene.design, SubstrateModel(nu=NU_S))
+    return [
+        [float(c.offset[0]), float(c.offset[1])]
+        for c in cal.couplings
+        if c.source == 0 and coupling_ratio(c.K1, cal.K0[0]) > COUPLING_THRESHOLD
+    ]
+
+
+def _puncture(scene: Scene) -> tuple[dict, dict]:
+    from ..experiments.puncture import PunctureSetup, run_puncture
+
+    setup = PunctureSetup(
+        design=scene.design, interaction=scene.interaction, nu=NU_S, increments=scene.increments
+    )
+    r = run_puncture(setup)
+    row = {
+        "Fc_star": r.Fc_star,
+        "delta_c_star": r.delta_c_star,
+        "load_x": float(r.load_point[0]),
+        "load_y": float(r.load_point[1]),
+        "tilt_deg_final": float(r.tilt_deg[-1]),
+        "wc_star": float(r.w_star[-1]),
+        "max_penetration": r.max_penetration,
+        "n_increments": len(r.states) - 1,
+        "qp_solves": r.qp_solves,
+        "branched": bool(r.branch.get("branched", False)),
+        "coupling": setup.coupling_factor,
+        "Fc_N": force_from_star(r.Fc_star, E_S_PA, NU_S, L_M),
+        "wc_mm": float(r.w_star[-1]) * L_M * 1e3,
+    }
+    if scene.rings == 0:
+        from ..substrate import isolated_block
+
+        row["K_phi_star"] = directional_rot_stiffness(isolated_block(scene.shape, NU_S), r.load_point)
+        row["Fc_rigid_star"] = np.deg2rad(setup.phi_c_deg) * row["K_phi_star"] / r.delta_c_star
+    data = {"w_star": r.w_star.tolist(), "F_star": r.F_star.tolist(), "q_final": r.states[-1].q.tolist()}
+    if scene.rings > 0 and scene.interaction == "full" and scene.slant_deg == 0.0:
+        data["effective_neighbours"] = effective_neighbours(scene)
+        row["n_effective_neighbours"] = len(data["effective_neighbours"])
+    return row, data
+
+
+def _flexure(scene: Scene) -> tuple[dict, dict]:
+    from ..experiments.flexure import FlexureSetup, run_flexure
+    from ..membrane import MembraneModel
+
+    nz = max(2, int(round(1.5 / scene.mesh_h)))
+    setup = FlexureSetup(
+        design=scene.design,
+        mode=scene.flex_mode,
+        load_line=scene.load_line,
+        membrane=MembraneModel(nu=0.5, h=scene.mesh_h, nz=nz),
+        increments=scene.increments,
+    )
+    r = run_flexure(setup)
+    # The membrane is solved with E_m = 1: forces are in E_m L^2.
+    scale_N = E_M_PA * L_M**2
+    row = {
+        "Cf_star": r.Cf_star,
+        "C_f": r.C_f,
+        "n_scales": r.n_scales,
+        "max_penetration": r.max_penetration,
+        "n_increments": len(r.deflection) - 1,
+        "F_end_N": float(r.force[-1]) * scale_N,
+        "deflection_end_mm": float(r.deflection[-1]) * L_M * 1e3,
+    }
+    data = {
+        "deflection": r.deflection.tolist(),
+        "force": r.force.tolist(),
+        "deflection_mm": (r.deflection * L_M * 1e3).tolist(),
+        "force_N": (r.force * scale_N).tolist(),
+    }
+    return row, data
+
+
+def run_scene(scene: Scene) -> tuple[dict, dict]:
+    """Run one scene; return its table row (parameters, results, status) and its curve data.
+
+    Failures are caught here so that a study carries on: ``status`` holds the solver's
+    status (or the exception's class), ``error`` the message, and result columns stay empty.
+    """
+    row = scene.as_dict()
+    if scene.kind == "puncture":
+        row["n_scales"] = scene.design.patch().n_scales
+    t0 = time.perf_counter()
+    data: dict = {}
+    try:
+        result, data = _puncture(scene) if scene.kind == "puncture" else _flexure(scene)
+        row.update(result)
+        row["status"] = "ok"
+    except SolverFailure as exc:
+        row.update({"status": exc.status, "error": str(exc), "failed_increment": exc.increment})
+    except QpscaleError as exc:
+        row.update({"status": type(exc).__name__, "error": str(exc)})
+    except Exception as exc:  # noqa: BLE001 - one broken scene must not stop the study
+        log.error("scene %s crashed:\n%s", scene.key, traceback.format_exc())
+        row.update({"status": f"crash:{type(exc).__name__}", "error": str(exc)})
+    row["wall_s"] = time.perf_counter() - t0
+    return row, data
