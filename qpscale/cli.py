@@ -336,6 +336,54 @@ def flexure(
     emit(payload, as_json, summary)
 
 
+@app.command()
+@handles_errors
+def paper(
+    out: Path = typer.Option(Path("paper_out"), "--out", help="Directory for the table and figures."),
+    quick: bool = typer.Option(False, "--quick", help="Two designs, coarse settings (a few minutes)."),
+    workers: int = typer.Option(2, "--workers", help="Parallel processes, 1 or 2."),
+    as_json: bool = JsonOpt,
+) -> None:
+    """Every study of the paper: results table (CSV, Parquet) and figures (PNG, SVG) in --out."""
+    from .studies.paper import run_paper
+    from .studies.paper_scenes import paper_scenes
+
+    if workers not in (1, 2):
+        raise InvalidDesign("workers", workers, "{1, 2}")
+    scenes = paper_scenes(quick)
+    with _progress("paper") as bar:
+        task = bar.add_task(f"paper: 0/{len(scenes)} scenes", total=len(scenes))
+
+        def step(scene: Any, row: dict[str, Any]) -> None:
+            bar.advance(task)
+            done = int(bar.tasks[0].completed)
+            bar.update(
+                task, description=f"paper: {done}/{len(scenes)} scenes, last {scene.key} {row['status']}"
+            )
+
+        result = run_paper(out, quick=quick, workers=workers, progress=step, scenes=scenes)
+    failed = result.table[result.table["status"] != "ok"]
+    payload = {
+        "out": str(out),
+        "n_scenes": len(result.table),
+        "n_failed": len(failed),
+        "failed": [{"scene": r["scene"], "status": r["status"]} for _, r in failed.iterrows()],
+        "table": {k: str(v) for k, v in result.files.items()},
+        "figures": [str(p) for p in result.figures],
+        "wall_s": result.wall_s,
+    }
+
+    def summary(p: dict[str, Any]) -> None:
+        console.print(
+            f"[bold]paper[/]: {p['n_scenes']} scenes, {p['n_failed']} failed, "
+            f"{len(p['figures'])} figure files, table {p['table']['csv']}, {p['wall_s']:.0f} s"
+        )
+        for f in p["failed"]:
+            console.print(f"  failed: {f['scene']}: {f['status']}", markup=False)
+
+    emit(payload, as_json, summary)
+
+
 _DOF_KEYS = ("Kx", "Ky", "Kz", "Kphix", "Kphiy")
 
 
