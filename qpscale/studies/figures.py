@@ -57,7 +57,7 @@ def fig3_validation(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
         label = f"{name}, alpha0={r['slant_deg']:g}"
         ax.plot(np.asarray(d["w_star"]) * L_M * 1e3, F, "o-", ms=3, label=label)
     ax.set(xlabel="puncture displacement (mm)", ylabel="puncture force (N)", title="Validation scenes")
-    ax.legend()
+    _legend(ax)
     return _save(fig, out, "fig03_validation")
 
 
@@ -72,9 +72,14 @@ def fig4_isolated(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
     if len(t):
         xs = np.linspace(0, 1.1 * x.max(), 2)
         ax.plot(xs, np.deg2rad(13.0) * xs, "k--", lw=0.8, label="phi_c K_phi*/delta_c*")
-        ax.legend()
+        _legend(ax)
     ax.set(xlabel="K_phi* / delta_c*", ylabel="F_c*", title="Isolated scales (worst vertex)")
     return _save(fig, out, "fig04_isolated")
+
+
+def _legend(ax: plt.Axes) -> None:
+    if ax.get_legend_handles_labels()[0]:
+        _legend(ax)
 
 
 def _bars(ax: plt.Axes, t: pd.DataFrame, group: str, series: list, column: str) -> None:
@@ -85,7 +90,7 @@ def _bars(ax: plt.Axes, t: pd.DataFrame, group: str, series: list, column: str) 
         vals = [sub.get(g, np.nan) for g in labels]
         ax.bar(np.arange(len(labels)) + k * width, vals, width, label=name)
     ax.set_xticks(np.arange(len(labels)) + 0.4 - width / 2, labels, rotation=30, ha="right")
-    ax.legend()
+    _legend(ax)
 
 
 def fig6a_interaction(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
@@ -183,7 +188,7 @@ def fig11_flexure_validation(table: pd.DataFrame, data: dict, out: Path) -> list
             label=f"alpha0={r['slant_deg']:g}, load line {r['load_line']}",
         )
     ax.set(xlabel="deflection (mm)", ylabel="force (N)", title="Flexure validation scenes")
-    ax.legend()
+    _legend(ax)
     return _save(fig, out, "fig11_flexure_validation")
 
 

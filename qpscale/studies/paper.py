@@ -22,6 +22,8 @@ from .paper_run import run_scene
 from .paper_scenes import Scene, paper_scenes
 
 MAX_WORKERS = 2
+# Result columns always present (empty where a scene failed or does not apply).
+RESULT_COLUMNS = ("status", "error", "Fc_star", "delta_c_star", "K_phi_star", "Cf_star", "wall_s")
 
 
 @dataclass
@@ -81,6 +83,9 @@ def add_ratios(table: pd.DataFrame) -> pd.DataFrame:
     Only rows whose status is ok enter a ratio; a missing reference leaves the ratio empty.
     """
     t = table.copy()
+    for col in RESULT_COLUMNS:
+        if col not in t:
+            t[col] = np.nan
     iso = (t["kind"] == "puncture") & (t["rings"] == 0)
     ref_iso, ref_flat = [], []
     for _, r in t.iterrows():
