@@ -79,7 +79,7 @@ def fig4_isolated(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
 
 def _legend(ax: plt.Axes) -> None:
     if ax.get_legend_handles_labels()[0]:
-        _legend(ax)
+        ax.legend()
 
 
 def _bars(ax: plt.Axes, t: pd.DataFrame, group: str, series: list, column: str) -> None:
