@@ -148,7 +148,8 @@ def solve_linearised(
 
     The penalised rows are those with g + J dq < 0 at the current dq; the step towards the
     minimiser of that quadratic is damped by the exact line search (5) from the second step on
-    (the first makes the linear load constraint hold).  Done when the rows no longer change.
+    (the first makes the linear load constraint hold).  Done when the rows no longer change, or
+    when the step is below ``tol / 10`` (rows at round-off level flipping).
     """
     x, dq, on = q.reshape(-1), np.zeros(q.size), lin.on.copy()
     for it in range(1, settings.max_iter + 1):
@@ -157,7 +158,8 @@ def solve_linearised(
         s = _line_search(K, k, x, lin, dq, p) if settings.line_search and it > 1 else 1.0
         dq = dq + s * p
         new_on = (lin.g + lin.J @ dq < 0.0) if lin.J is not None else on
-        if s == 1.0 and np.array_equal(new_on, on):
+        # Rows whose linearised gap is at round-off level may flip forever; a step below tol/10 is converged.
+        if (s == 1.0 and np.array_equal(new_on, on)) or np.max(np.abs(s * p)) <= 0.1 * settings.tol:
             return dq.reshape(q.shape), F, it
         on = new_on
     raise SolverFailure(
