@@ -218,3 +218,40 @@ def test_quick_paper_runs_every_study(tmp_path):
     hexa = ok[(ok["study"] == "interaction") & (ok["shape"] == "hexagon") & (ok["interaction"] == "full")]
     assert len(hexa) == 1 and hexa["ratio_iso"].iloc[0] > 2.0
     assert result.wall_s < 600.0
+
+
+def _flexure(mode: str):
+    from qpscale.experiments.flexure import FlexureSetup, run_flexure
+    from qpscale.membrane import MembraneModel
+
+    return run_flexure(FlexureSetup(mode=mode, membrane=MembraneModel(h=1.0, nz=2), increments=2))
+
+
+@pytest.mark.parametrize("mode", ["bare", "scaled"])
+def test_flexure_vtk_series_loads_back(tmp_path, mode):
+    import meshio
+
+    from qpscale.export_vtk_flexure import write_flexure_series
+
+    result = _flexure(mode)
+    pvd = write_flexure_series(result, tmp_path)
+    assert pvd.exists() and pvd.read_text().count("<DataSet") == (1 if mode == "bare" else 3) * 2
+    last = len(result.deflection) - 2
+    membrane = meshio.read(tmp_path / f"flexure_membrane_{last:04d}.vtu")
+    u = membrane.point_data["displacement"]
+    assert membrane.cells[0].type == "hexahedron" and u.shape == (len(membrane.points), 3)
+    w = result.deflection[-1]
+    if mode == "bare":
+        # Top nodes under the plate (load line x: |y| <= 0.25 L) may sag below it but never rise
+        # above it, and some touch it: their highest is -w (1e-8 L: the QP's penetration tol. 1e-9 L).
+        p = membrane.points
+        under = np.isclose(p[:, 2], 1.5) & (np.abs(p[:, 1]) <= 0.25 + 1e-9)
+        assert u[under, 2].max() == pytest.approx(-w, abs=1e-8)
+        return
+    scales = meshio.read(tmp_path / f"flexure_scales_{last:04d}.vtu")
+    contacts = meshio.read(tmp_path / f"flexure_contacts_{last:04d}.vtu")
+    # A plate point on a top face moves down by w; the displacement is linear over the (convex) face,
+    # so some vertex moves at least as far.  Scales sit on the membrane's top (H = 1.5 L).
+    assert scales.point_data["displacement"][:, 2].min() <= -w + 1e-8
+    assert scales.points[:, 2].min() == pytest.approx(1.5 - w, abs=0.05)
+    assert contacts.point_data["force"].shape == (len(contacts.points), 3)
