@@ -1,0 +1,316 @@
+"""The solver and formulation benchmark of ``qpscale bench`` (runs and metrics).
+
+Implements formulations/penalty.md sec. 7 (the benchmark protocol): every method runs the same
+puncture path of every scene, at the load point the reference run chose; a run succeeds only if
+its solver says so and its answer passes our checks; metrics are computed from the runs in the
+manner of qpbenchmark (success rate, shifted geometric mean and median of wall time with
+failures at the time limit, F_c error, penetration, complementarity, solves).  Charts and CSV
+are in :mod:`qpscale.studies.bench_report`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..errors import InvalidDesign, QpscaleError
+from ..experiments.puncture import PunctureSetup, run_puncture
+from ..increment import SQPSettings
+from ..penalty import PenaltySettings
+from ..solvers import available_solvers
+from ..tiling import Design
+
+FC_TOL = 1e-2  # F_c relative error above 1 % is a failure (issue #6 stability map)
+PEN_TOL = 1e-9  # exact-contact methods must not overlap more than this (L)
+SHIFT_S = 10.0  # shift of the shifted geometric mean, seconds (qpbenchmark)
+QP_EXTRA = ("piqp", "daqp", "proxqp", "quadprog", "highs", "osqp", "clarabel", "cvxopt")
+
+
+@dataclass(frozen=True)
+class Method:
+    """One method setting: a QP backend at an accuracy, or the penalty baseline at a k_pen.
+
+    Parameters
+    ----------
+    name : str
+        Label in tables and charts.
+    solver : str
+        Backend key or ``"penalty"``.
+    accuracy : str or float
+        QP tolerance (``high`` 1e-9, ``mid`` 1e-6, ``low`` 1e-3).
+    penalty : PenaltySettings or None
+        Penalty settings (``solver == "penalty"``).
+    options : dict or None
+        Backend option overrides (e.g. OSQP ``{"polishing": False}``).
+    increments : int
+        Target increments of the path.
+    """
+
+    name: str
+    solver: str
+    accuracy: str | float = "high"
+    penalty: PenaltySettings | None = None
+    options: dict | None = None
+    increments: int = 16
+
+    def __post_init__(self) -> None:
+        if self.solver != "penalty" and self.solver not in available_solvers():
+            raise InvalidDesign("solver", self.solver, "an installed backend or 'penalty'")
+
+    @property
+    def exact_contact(self) -> bool:
+        return self.solver != "penalty"
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A bench scene: a design and its interaction; the load point comes from the reference."""
+
+    name: str
+    design: Design
+    interaction: str = "full"
+    coupling: float | None = None
+
+
+@dataclass
+class Run:
+    """One method on one scene: status, checks and metrics (None where not defined)."""
+
+    method: str
+    scene: str
+    status: str
+    success: bool
+    wall_s: float
+    Fc_star: float | None = None
+    Fc_rel_error: float | None = None
+    max_penetration: float | None = None
+    complementarity: float | None = None
+    qp_solves: int | None = None
+    failure: str = ""
+
+
+@dataclass
+class Reference:
+    """The tightest converged QP solution of a scene (clarabel, high accuracy)."""
+
+    scene: str
+    Fc_star: float
+    load_point: tuple[float, float]
+    wall_s: float
+
+
+def quick_scenes() -> list[Scene]:
+    """5x5 square array at alpha = 0 and the dart at alpha0 = 60 deg (issue #5)."""
+    return [Scene("square_a0", Design()), Scene("dart_a60", Design(shape="dart", slant_deg=60.0))]
+
+
+def full_scenes() -> list[Scene]:
+    """The quick scenes plus square alpha45 = 60 deg, the hexagon and a d = 0 square (issue #6)."""
+    return quick_scenes() + [
+        Scene("square_a45_60", Design(slant_deg=60.0, slant_dir_deg=45.0)),
+        Scene("hexagon", Design(shape="hexagon")),
+        Scene("square_d0", Design(gap=0.0)),
+    ]
+
+
+def default_methods(quick: bool = True) -> list[Method]:
+    """Method settings: direct backends, the same solvers through qpsolvers and CVXPY, penalty."""
+    have = set(available_solvers())
+    out = [
+        Method("clarabel", "clarabel"),
+        Method("osqp", "osqp"),
+        Method("osqp-mid", "osqp", "mid"),
+        Method("cvxpy", "cvxpy"),
+    ]
+    extra = ("piqp", "daqp", "proxqp", "clarabel") if quick else QP_EXTRA
+    out += [Method(f"qpsolvers:{n}", f"qpsolvers:{n}") for n in extra if f"qpsolvers:{n}" in have]
+    kappas = (1e2, 1e3) if quick else (1e1, 1e2, 1e3, 1e4, 1e5)
+    out += [Method(f"penalty-k{k:.0e}", "penalty", penalty=PenaltySettings(k_pen=k)) for k in kappas]
+    if not quick:
+        out += [
+            Method("clarabel-mid", "clarabel", "mid"),
+            Method("clarabel-low", "clarabel", "low"),
+            Method("osqp-low", "osqp", "low"),
+            Method("osqp-nopolish-mid", "osqp", "mid", options={"polishing": False}),
+            Method("penalty-k1e+03-n32", "penalty", penalty=PenaltySettings(k_pen=1e3), increments=32),
+        ]
+    return out
+
+
+@contextlib.contextmanager
+def backend_overrides(options: dict | None) -> Iterator[None]:
+    """Temporarily merge ``options`` into every backend's settings (SQPSettings has no such field)."""
+    if not options:
+        yield
+        return
+    from .. import solvers
+
+    original = solvers.backend_options
+    solvers.backend_options = lambda solver, tol: {**original(solver, tol), **options}
+    try:
+        yield
+    finally:
+        solvers.backend_options = original
+
+
+def _setup(scene: Scene, method: Method, load_point: tuple[float, float] | None) -> PunctureSetup:
+    return PunctureSetup(
+        design=scene.design,
+        interaction=scene.interaction,
+        coupling=scene.coupling,
+        load_point=load_point,
+        probe=False,
+        increments=method.increments,
+        sqp=SQPSettings(solver=method.solver, accuracy=method.accuracy),
+        penalty=method.penalty,
+    )
+
+
+def reference_run(scene: Scene) -> Reference:
+    """Clarabel at high accuracy over every symmetry-distinct vertex: F_c and the worst load point."""
+    t0 = time.perf_counter()
+    res = run_puncture(_setup(scene, Method("reference", "clarabel"), None))
+    xy = tuple(float(v) for v in res.load_point)
+    return Reference(scene.name, float(res.Fc_star), xy, time.perf_counter() - t0)  # type: ignore[arg-type]
+
+
+def complementarity(res) -> float:
+    """max_k lam_k |g_k| over the path's states (F* L): zero for exact contact."""
+    worst = 0.0
+    for st in res.states:
+        if st.contacts is not None and len(st.lam):
+            worst = max(worst, float(np.max(np.abs(st.lam * st.contacts.gap))))
+    return worst
+
+
+def run_method(scene: Scene, method: Method, ref: Reference | None, time_limit: float) -> Run:
+    """Run one method on one scene and apply the checks; a failure keeps its status."""
+    t0 = time.perf_counter()
+    try:
+        with backend_overrides(method.options):
+            res = run_puncture(_setup(scene, method, ref.load_point if ref else None))
+    except QpscaleError as exc:
+        status = getattr(exc, "status", type(exc).__name__)
+        return Run(method.name, scene.name, str(status), False, time.perf_counter() - t0, failure="solver")
+    wall = time.perf_counter() - t0
+    run = Run(
+        method.name,
+        scene.name,
+        "solved",
+        True,
+        wall,
+        float(res.Fc_star),
+        None,
+        res.max_penetration,
+        complementarity(res),
+        res.qp_solves,
+    )
+    return _check(run, method, ref, time_limit)
+
+
+def _check(run: Run, method: Method, ref: Reference | None, time_limit: float) -> Run:
+    """Our checks on a solved run: finite output, F_c error, penetration, time limit."""
+    if run.Fc_star is None or not np.isfinite(run.Fc_star):
+        return replace(run, success=False, failure="non-finite")
+    if ref is not None:
+        run = replace(run, Fc_rel_error=abs(run.Fc_star - ref.Fc_star) / abs(ref.Fc_star))
+    if run.Fc_rel_error is not None and run.Fc_rel_error > FC_TOL:
+        return replace(run, success=False, failure="Fc error")
+    if method.exact_contact and (run.max_penetration or 0.0) > PEN_TOL:
+        return replace(run, success=False, failure="penetration")
+    if run.wall_s > time_limit:
+        return replace(run, success=False, failure="time limit")
+    return run
+
+
+@dataclass
+class BenchResult:
+    """Every run, the references, and the per-method summary."""
+
+    references: dict[str, Reference]
+    runs: list[Run]
+    time_limit: float
+    summary: list[dict] = field(default_factory=list)
+    extras: dict = field(default_factory=dict)
+
+
+def run_bench(
+    scenes: list[Scene],
+    methods: list[Method],
+    time_limit: float = 60.0,
+    progress: Callable[[str], None] | None = None,
+) -> BenchResult:
+    """Reference per scene, then every method on every scene with a reference; summarised."""
+    refs: dict[str, Reference] = {}
+    runs: list[Run] = []
+    for scene in scenes:
+        if progress:
+            progress(f"{scene.name}: reference")
+        try:
+            refs[scene.name] = reference_run(scene)
+        except QpscaleError as exc:
+            runs += [
+                Run(
+                    m.name,
+                    scene.name,
+                    f"no reference: {getattr(exc, 'status', exc)}",
+                    False,
+                    time_limit,
+                    failure="no reference",
+                )
+                for m in methods
+            ]
+            continue
+        for m in methods:
+            if progress:
+                progress(f"{scene.name}: {m.name}")
+            runs.append(run_method(scene, m, refs[scene.name], time_limit))
+    result = BenchResult(refs, runs, time_limit)
+    result.summary = summarise(runs, [m.name for m in methods], time_limit)
+    return result
+
+
+def shifted_geomean(times: np.ndarray, shift: float = SHIFT_S) -> float:
+    """exp(mean(log(t + shift))) - shift (qpbenchmark's shifted geometric mean), seconds."""
+    return float(np.exp(np.mean(np.log(np.asarray(times) + shift))) - shift)
+
+
+def summarise(runs: list[Run], names: list[str], time_limit: float) -> list[dict]:
+    """Per method: success rate, shifted geomean / median wall time (failures at the time limit),
+    worst F_c error, penetration and complementarity over its successes, solves, ratio to CVXPY."""
+    by = {n: [r for r in runs if r.method == n] for n in names}
+    timed = {n: np.array([r.wall_s if r.success else time_limit for r in rs]) for n, rs in by.items()}
+    out = []
+    for n, rs in by.items():
+        ok = [r for r in rs if r.success]
+        row = {
+            "name": n,
+            "runs": len(rs),
+            "success_rate": len(ok) / len(rs) if rs else 0.0,
+            "median_wall_s": float(np.median(timed[n])) if rs else None,
+            "shifted_geomean_s": shifted_geomean(timed[n]) if rs else None,
+            "Fc_rel_error": _worst([r.Fc_rel_error for r in ok]),
+            "max_penetration": _worst([r.max_penetration for r in ok]),
+            "complementarity": _worst([r.complementarity for r in ok]),
+            "qp_solves": int(sum(r.qp_solves or 0 for r in rs)),
+            "statuses": sorted({f"{r.scene}: {r.failure} ({r.status})" for r in rs if not r.success}),
+        }
+        row["time_ratio_to_cvxpy"] = _ratio(timed[n], timed.get("cvxpy"))
+        out.append(row)
+    return out
+
+
+def _worst(values: list) -> float | None:
+    vals = [v for v in values if v is not None]
+    return float(max(vals)) if vals else None
+
+
+def _ratio(t: np.ndarray, ref: np.ndarray | None) -> float | None:
+    """Geometric mean over scenes of t_method / t_cvxpy (same run, failures at the time limit)."""
+    if ref is None or len(ref) != len(t) or len(t) == 0:
+        return None
+    return float(np.exp(np.mean(np.log(t / ref))))
