@@ -447,6 +447,36 @@ def substrate(
     emit(payload, as_json, summary)
 
 
+@app.command()
+@handles_errors
+def bench(
+    out: Path = typer.Option(Path("bench_out"), "--out", help="Directory for the charts (PNG) and CSV."),
+    quick: bool = typer.Option(False, "--quick", help="Two scenes, fewer methods, a small stability grid."),
+    time_limit: float = typer.Option(60.0, "--time-limit", help="Seconds per curve counted for a failure."),
+    as_json: bool = JsonOpt,
+) -> None:
+    """Solver and formulation comparison: speed against accuracy, stability where methods fail."""
+    from .studies.bench_report import run_all
+
+    with _progress("bench") as bar:
+        task = bar.add_task("bench", total=None)
+        payload = run_all(
+            out, quick, time_limit, progress=lambda m: bar.update(task, description=f"bench: {m}")
+        )
+
+    def summary(p: dict[str, Any]) -> None:
+        for m in p["methods"]:
+            ratio = m["time_ratio_to_cvxpy"]
+            console.print(
+                f"{m['name']:>22}: success {m['success_rate']:.0%}, median {m['median_wall_s']:.2f} s"
+                + (f", x{ratio:.2f} of cvxpy" if ratio is not None else "")
+                + (f", F_c error {m['Fc_rel_error']:.1e}" if m["Fc_rel_error"] is not None else "")
+            )
+        console.print(f"charts and CSV in {p['out']}")
+
+    emit(payload, as_json, summary)
+
+
 def main() -> None:
     """Console-script entry point."""
     app()
