@@ -255,3 +255,16 @@ def test_flexure_vtk_series_loads_back(tmp_path, mode):
     assert scales.point_data["displacement"][:, 2].min() <= -w + 1e-8
     assert scales.points[:, 2].min() == pytest.approx(1.5 - w, abs=0.05)
     assert contacts.point_data["force"].shape == (len(contacts.points), 3)
+
+
+def test_design_exploration_scenes_share_the_design():
+    from qpscale.studies.paper_explore import design_scenes, notebook_scenes
+    from qpscale.tiling import Design
+
+    d = Design(shape="dart", slant_deg=60.0, slant_dir_deg=90.0)
+    scenes = design_scenes(d, quick=True)
+    assert {s.design.with_(rings=2) for s in scenes} == {d}
+    assert [s.rings for s in scenes if s.kind == "puncture"] == [0, 2]
+    assert sorted(s.load_line for s in scenes if s.kind == "flexure") == ["x", "y"]
+    studies = {s.study for s in notebook_scenes(quick=True)}
+    assert {"isolated", "interaction", "slant", "flexure", "validation"} <= studies
