@@ -268,3 +268,40 @@ def test_design_exploration_scenes_share_the_design():
     assert sorted(s.load_line for s in scenes if s.kind == "flexure") == ["x", "y"]
     studies = {s.study for s in notebook_scenes(quick=True)}
     assert {"isolated", "interaction", "slant", "flexure", "validation"} <= studies
+
+
+def test_findings_read_the_table():
+    from qpscale.studies.paper_findings import findings_table
+
+    base = {"status": "ok", "kind": "puncture", "tiling": "arrayed", "slant_deg": 0.0, "slant_dir_deg": 0.0}
+    rows = [
+        {
+            **base,
+            "study": "interaction",
+            "interaction": "full",
+            "shape": "square",
+            "rings": 2,
+            "ratio_iso": 4.5,
+        },
+        {
+            **base,
+            "study": "interaction",
+            "interaction": "full",
+            "shape": "hexagon",
+            "rings": 2,
+            "ratio_iso": 6.0,
+        },
+        {
+            **base,
+            "study": "interaction",
+            "interaction": "contact",
+            "shape": "square",
+            "rings": 2,
+            "status": "MaxIterations",
+            "ratio_iso": np.nan,
+        },
+    ]
+    f = findings_table(pd.DataFrame(rows)).set_index("paper")["ours"]
+    assert f["arrays raise puncture resistance 4 to 8 times"].startswith("F_c/F_c,iso = 4.50 to 6.00")
+    assert f["contact with 4 % coupling: barely above the isolated scale"].endswith("no converged scene")
+    assert f["failed scenes (status kept in the table)"] == "1"

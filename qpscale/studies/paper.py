@@ -135,6 +135,7 @@ def run_paper(
         Run these instead of ``paper_scenes(quick)``.
     """
     from .figures import all_figures
+    from .paper_findings import write_findings
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -142,6 +143,7 @@ def run_paper(
     table = add_ratios(pd.DataFrame(rows))
     files = write_table(table, data, out)
     figures = all_figures(table, data, out)
+    files["findings"] = write_findings(table, out)
     return PaperResult(table, data, figures, time.perf_counter() - t0, files)
 
 
