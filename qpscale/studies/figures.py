@@ -52,7 +52,7 @@ def fig3_validation(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(6, 4.5))
     for _, r in _ok(table, study="validation").iterrows():
         d = data[r["scene"]]
-        F = force_from_star(np.asarray(d["F_star"]), E_S_PA, NU_S, L_M)
+        F = force_from_star(1.0, E_S_PA, NU_S, L_M) * np.asarray(d["F_star"])
         name = "isolated" if r["rings"] == 0 else f"{r['n_scales']} scales"
         label = f"{name}, alpha0={r['slant_deg']:g}"
         ax.plot(np.asarray(d["w_star"]) * L_M * 1e3, F, "o-", ms=3, label=label)

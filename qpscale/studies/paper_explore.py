@@ -9,6 +9,7 @@ notebooks/design_exploration.ipynb; the scenes run through ``paper_run.run_scene
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -22,7 +23,7 @@ NOTEBOOK_QUICK = (("hexagon", "honeycomb"),)
 def design_scenes(design: Design, quick: bool = True) -> list[Scene]:
     """Isolated and arrayed puncture (full, substrate, contact) and flexure along x and y."""
     inc, h = (6, 1.0) if quick else (16, 0.5)
-    common = {
+    common: dict[str, Any] = {
         "shape": design.shape,
         "tiling": design.tiling,
         "slant_deg": design.slant_deg,
