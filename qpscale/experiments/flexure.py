@@ -9,15 +9,17 @@ The membrane is condensed once (qpscale.membrane); every QP has only the retaine
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
 import shapely
 from shapely.geometry import Polygon, box
 
+from ..contact import ContactSet, detect_contacts, gap_jacobian, penetration
 from ..errors import InvalidDesign, SolverFailure
 from ..geometry import Array, rotation_matrix, skew, tangent_operator
+from ..increment import _Anderson
 from ..membrane import MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
 from ..solvers import solve_qp
@@ -26,6 +28,10 @@ from ..units import compliance_star
 
 MODES = ("scaled", "isolated", "bare")
 PENETRATION_TOL = 1e-9
+STEP_TOL = 1e-9  # L: largest change of a retained DOF (scale DOFs, support and plate u_z)
+ACCURACY = "high"  # KKT tolerance 1e-9 of each QP
+MAX_ITER = 60
+ROW_MEMORY = 4  # linearisations whose contact rows stay in the QP (_merge_rows)
 
 
 @dataclass(frozen=True)
@@ -49,6 +55,10 @@ class FlexureSetup:
         Plate positions on the curve.
     contact : bool
         Scale-scale contact rows (False: scales interact through the membrane only).
+    grade : bool
+        Mesh lines at the scales' axis-parallel edges, graded towards the gaps (False: uniform).
+    solver : str
+        QP backend.
     """
 
     design: Design = field(default_factory=Design)
@@ -61,6 +71,7 @@ class FlexureSetup:
     max_deflection: float = 0.2
     increments: int = 5
     contact: bool = True
+    grade: bool = True
     solver: str = "clarabel"
 
     def __post_init__(self) -> None:
@@ -156,11 +167,30 @@ def _strips(setup: FlexureSetup) -> tuple[Polygon, list[Polygon]]:
     return strip(0.0, wp), [strip(-s, ws), strip(s, ws)]
 
 
-def _mesh(setup: FlexureSetup) -> MembraneMesh:
+def _mesh(setup: FlexureSetup, patch: Patch | None) -> MembraneMesh:
+    """Grid lines at the strip edges and at every axis-parallel scale edge (membrane.md sec. 2).
+
+    Scale edges parallel to the load line (across which the membrane bends) are graded lines:
+    the mesh is refined geometrically towards them, so the free strip between two bonded regions
+    is the gap d itself; the other axis-parallel edges are plain grid lines.
+    """
     s, wp, ws = setup.span / 2, setup.plate_width / 2, setup.support_width / 2
     cuts = (-s - ws, -s + ws, s - ws, s + ws, -wp, wp)
-    xb, yb = ((), cuts) if setup.axis == 1 else (cuts, ())
-    return MembraneMesh(setup.membrane, build_mesh(setup.membrane, xb, yb))
+    xe, ye = _edge_lines(patch) if patch is not None and setup.grade else ((), ())
+    if setup.axis == 1:
+        args = {"xbreaks": xe, "ybreaks": cuts, "yfine": ye}
+    else:
+        args = {"xbreaks": cuts, "ybreaks": ye, "xfine": xe}
+    return MembraneMesh(setup.membrane, build_mesh(setup.membrane, **args))
+
+
+def _edge_lines(patch: Patch) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """x of the scales' edges parallel to y and y of those parallel to x (base polygons), in L."""
+    P = patch.base
+    E = np.roll(P, -1, axis=1) - P
+    xs = np.unique(np.round(P[np.abs(E[..., 0]) < 1e-9][:, 0], 9))
+    ys = np.unique(np.round(P[np.abs(E[..., 1]) < 1e-9][:, 1], 9))
+    return tuple(xs.tolist()), tuple(ys.tolist())
 
 
 def _in(poly: Polygon, xy: Array) -> np.ndarray:
@@ -185,11 +215,11 @@ class FlexureModel:
 def build_model(setup: FlexureSetup) -> FlexureModel:
     """Mesh, tie, pin and condense the membrane once (formulations/membrane.md eqs. (5)-(9))."""
     t0 = time.perf_counter()
-    mm = _mesh(setup)
+    patch = None if setup.mode == "bare" else kept_scales(setup)
+    mm = _mesh(setup, patch)
     xyz = mm.nodes
     top, bottom = mm.face_nodes(True), mm.face_nodes(False)
     plate, supports = _strips(setup)
-    patch = None if setup.mode == "bare" else kept_scales(setup)
     ties = []
     if patch is not None:
         taken = np.zeros(len(top), bool)
@@ -266,48 +296,146 @@ def _plate_rows(model: FlexureModel, z: Array, z_plate: float) -> tuple[Array, A
     return G, h, over
 
 
-def _contact_rows(model: FlexureModel, z: Array) -> tuple[Array, Array, float]:
-    """Scale-scale rows ``-J q <= g - J q_n`` from qpscale.contact, eq. (12), and the exact penetration."""
+def _contact_rows(
+    model: FlexureModel, z: Array, previous: ContactSet | None
+) -> tuple[Array, Array, ContactSet | None]:
+    """Scale-scale rows ``-J q <= g - J q_n`` from qpscale.contact, eq. (12), and their contact set.
+
+    ``previous`` keeps each pair's separating axis sticky across linearisations.
+    """
     n = len(z)
     if model.patch is None or model.patch.n_scales < 2 or not model.setup.contact:
-        return np.zeros((0, n)), np.zeros(0), 0.0
-    try:
-        from ..contact import detect_contacts, gap_jacobian, penetration
-    except ImportError as exc:
-        raise SolverFailure("contact", "qpscale.contact is not available", detail=str(exc)) from exc
+        return np.zeros((0, n)), np.zeros(0), None
     q = z[: model.n_q].reshape(-1, 5)
-    cs = detect_contacts(model.patch, q, None)
+    cs = detect_contacts(model.patch, q, None, previous=previous)
     J = sp.csr_matrix(gap_jacobian(cs, model.patch, q)).toarray()
     G = np.zeros((J.shape[0], n))
     G[:, : model.n_q] = -J
-    return G, np.asarray(cs.gap) - J @ z[: model.n_q], float(penetration(model.patch, q))
+    return G, np.asarray(cs.gap) - J @ z[: model.n_q], cs
 
 
-def _solve_level(model: FlexureModel, z: Array, w: float, inc: int) -> tuple[Array, float, int, float]:
-    """Sequential QP at one plate position: returns z, plate force, iterations, penetration (eq. (13))."""
+@dataclass(frozen=True)
+class FlexureState:
+    """A converged state at one plate position.
+
+    Attributes
+    ----------
+    w : float
+        Plate displacement, in L.
+    force : float
+        Plate reaction (sum of the plate rows' multipliers), E_m L^2.
+    z : ndarray (m,)
+        Retained generalised DOFs.
+    contacts : ContactSet or None
+        Scale-scale contact rows of the last QP; ``lam`` their multipliers (>= 0, E_m L^2).
+    lam : ndarray (contacts.m,)
+    iterations : int
+    penetration : float
+        Largest exact overlap (plate and scale-scale), in L.
+    """
+
+    w: float
+    force: float
+    z: Array = field(repr=False)
+    contacts: ContactSet | None = field(repr=False)
+    lam: Array = field(repr=False)
+    iterations: int
+    penetration: float
+
+
+def _exact_penetration(model: FlexureModel, z: Array, z_plate: float) -> float:
+    over = float(np.max(_plate_rows(model, z, z_plate)[2], initial=0.0))
+    if model.patch is None or model.patch.n_scales < 2 or not model.setup.contact:
+        return max(0.0, over)
+    return max(0.0, over, float(penetration(model.patch, z[: model.n_q].reshape(-1, 5))))
+
+
+def _merge_rows(
+    history: list[tuple[Array, Array, ContactSet | None]],
+) -> tuple[Array, Array, ContactSet | None]:
+    """The current contact rows plus, for contact points that just left the set, their last rows.
+
+    Near-coincident faces make the clipped point set flicker between linearisations (a cycle of
+    2-4 sets was seen on the square array); keeping the rows of the last ``ROW_MEMORY``
+    linearisations, each at its own linearisation point, lets the iteration settle on their
+    union (formulations/membrane.md sec. 8).  Stale rows are first-order accurate about a point
+    that differs from the current one by the last steps, which vanish at convergence.
+    """
+    G, h, cs = history[-1]
+    if cs is None:
+        return G, h, None
+    seen = set(_row_keys(cs))
+    Gs, hs, parts = [G], [h], [cs]
+    for Gk, hk, ck in reversed(history[:-1]):
+        keys = _row_keys(ck)
+        keep = np.array([k not in seen for k in keys], dtype=bool)
+        if keep.any():
+            seen.update(k for k, kp in zip(keys, keep) if kp)
+            Gs.append(Gk[keep])
+            hs.append(hk[keep])
+            parts.append(_take(ck, keep))
+    if len(parts) == 1:
+        return G, h, cs
+    return np.vstack(Gs), np.concatenate(hs), _concat(parts)
+
+
+def _row_keys(cs: ContactSet) -> list[tuple]:
+    """A row's identity: its feature label and where its point on b sits (to 1e-3 L)."""
+    return [(lab, *np.round(x, 3)) for lab, x in zip(cs.labels, cs.xb)]
+
+
+_ROW_FIELDS = ("a", "b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kind")
+
+
+def _take(cs: ContactSet, keep: np.ndarray) -> ContactSet:
+    rows = {f: getattr(cs, f)[keep] for f in _ROW_FIELDS}
+    labels = tuple(lab for lab, k in zip(cs.labels, keep) if k)
+    return replace(cs, labels=labels, **rows)
+
+
+def _concat(parts: list[ContactSet]) -> ContactSet:
+    rows = {f: np.concatenate([getattr(c, f) for c in parts]) for f in _ROW_FIELDS}
+    labels = tuple(lab for c in parts for lab in c.labels)
+    return replace(parts[0], labels=labels, **rows)
+
+
+def _solve_level(
+    model: FlexureModel, z: Array, w: float, inc: int, previous: ContactSet | None
+) -> FlexureState:
+    """Sequential QP at one plate position, eq. (13), Anderson-accelerated while the rows are unchanged."""
     setup = model.setup
-    top = setup.membrane.height + (setup.design.thickness if model.patch is not None else 0.0)
-    z_plate = top - w
+    z_plate = setup.membrane.height + (setup.design.thickness if model.patch is not None else 0.0) - w
     P = sp.csc_matrix(model.cond.S)
     ns = len(model.support_idx)
     Gs = np.zeros((ns, len(z)))
     Gs[np.arange(ns), model.support_idx] = -1.0
-    for it in range(1, 31):
+    cs, accel, rows, step = previous, _Anderson(), None, np.zeros(0)
+    history: list[tuple[Array, Array, ContactSet | None]] = []
+    for it in range(1, MAX_ITER + 1):
         Gp, hp, _ = _plate_rows(model, z, z_plate)
-        Gc, hc, _ = _contact_rows(model, z)
+        Gc, hc, cs = _contact_rows(model, z, cs)
+        history = [*history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
+        Gc, hc, merged = _merge_rows(history)
         G = sp.csc_matrix(np.vstack([Gp, Gs, Gc]))
         qp = IncrementQP(P, np.zeros(len(z)), G, np.r_[hp, np.zeros(ns), hc])
-        res = solve_qp(qp, solver=setup.solver, accuracy="mid")
-        if not res.found:
-            raise SolverFailure(setup.solver, res.status, increment=inc)
-        step = float(np.max(np.abs(res.x - z)))
-        z = res.x
-        force = float(np.sum(res.z[: len(hp)]))
-        over = float(np.max(_plate_rows(model, z, z_plate)[2], initial=0.0))
-        pen = max(0.0, over, _contact_rows(model, z)[2])
-        if pen < PENETRATION_TOL and (step < 1e-10 or model.patch is None or it > 1):
-            return z, force, it, pen
-    detail = f"penetration {pen:.3g}"
+        try:
+            res = solve_qp(qp, solver=setup.solver, accuracy=ACCURACY)
+        except SolverFailure as exc:
+            raise SolverFailure(exc.solver, exc.status, inc, exc.detail) from exc
+        step = res.x - z
+        if np.max(np.abs(step)) <= STEP_TOL:
+            z = res.x
+            pen = _exact_penetration(model, z, z_plate)
+            if pen <= PENETRATION_TOL:
+                lam = np.asarray(res.z[len(hp) + ns :])
+                return FlexureState(w, float(np.sum(res.z[: len(hp)])), z, merged, lam, it, pen)
+            continue
+        labels = frozenset(_row_keys(merged)) if merged is not None else frozenset()
+        if labels != rows:
+            accel.reset()
+            rows = labels
+        z = accel.step(z, step)
+    detail = f"last |dz| = {np.max(np.abs(step)):.3g} after {MAX_ITER} iterations"
     raise SolverFailure(setup.solver, "sequential QP did not converge", increment=inc, detail=detail)
 
 
@@ -317,12 +445,15 @@ def run_flexure(setup: FlexureSetup) -> FlexureResult:
     model = build_model(setup)
     z = np.zeros(len(model.cond.retained))
     ws = np.linspace(0.0, setup.max_deflection, setup.increments + 1)
-    forces, iters, pen = [0.0], 0, 0.0
+    states: list[FlexureState] = []
+    cs = None
     for inc, w in enumerate(ws[1:], start=1):
-        z, F, it, p = _solve_level(model, z, float(w), inc)
-        forces.append(F)
-        iters, pen = iters + it, max(pen, p)
-    F = np.array(forces)
+        state = _solve_level(model, z, float(w), inc, cs)
+        states.append(state)
+        z, cs = state.z, state.contacts
+    F = np.r_[0.0, [s.force for s in states]]
+    iters = sum(s.iterations for s in states)
+    pen = max(s.penetration for s in states)
     if not F[-1] > 0:
         raise SolverFailure(setup.solver, "no plate force", detail=f"F={F[-1]:.3g}")
     C_f = float(ws[-1] / F[-1])
@@ -343,5 +474,5 @@ def run_flexure(setup: FlexureSetup) -> FlexureResult:
         wall,
         model.condense_s,
         z,
-        {"model": model},
+        {"model": model, "states": states},
     )
