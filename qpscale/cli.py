@@ -303,6 +303,7 @@ def flexure(
     nu_m: float = typer.Option(0.5, "--nu-m", help="Poisson's ratio of the membrane, [0, 0.5]."),
     mesh_h: float = typer.Option(0.5, "--mesh-h", help="In-plane element size, in L."),
     solver: str = typer.Option("clarabel", "--solver", help="clarabel, osqp, cvxpy or qpsolvers:<name>."),
+    vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
     as_json: bool = JsonOpt,
 ) -> None:
     """Flexure: three-point bending of the membrane (bare, one scale, or covered), C_f*."""
@@ -328,6 +329,10 @@ def flexure(
         "sqp_iterations": result.sqp_iterations,
         "max_penetration": result.max_penetration,
     }
+    if vtk is not None:
+        from .export_vtk_flexure import write_flexure_series
+
+        payload["vtk"] = str(write_flexure_series(result, vtk))
 
     def summary(p: dict[str, Any]) -> None:
         console.print(f"[bold]{mode}[/] {design.shape} ({design.tiling}), load line {load_line}: "
