@@ -31,6 +31,7 @@ PENETRATION_TOL = 1e-9
 STEP_TOL = 1e-9  # L: largest change of a retained DOF (scale DOFs, support and plate u_z)
 ACCURACY = "high"  # KKT tolerance 1e-9 of each QP
 MAX_ITER = 60
+STALE_RADIUS = 1e-4  # L or rad: farthest linearisation point whose rows are still kept
 ROW_MEMORY = 4  # linearisations whose contact rows stay in the QP (_merge_rows)
 
 
@@ -359,7 +360,9 @@ def _merge_rows(
     2-4 sets was seen on the square array); keeping the rows of the last ``ROW_MEMORY``
     linearisations, each at its own linearisation point, lets the iteration settle on their
     union (formulations/membrane.md sec. 8).  Stale rows are first-order accurate about a point
-    that differs from the current one by the last steps, which vanish at convergence.
+    that differs from the current one by the last steps; only linearisations within
+    ``STALE_RADIUS`` of the current ``z`` are kept, so their error (quadratic in that distance)
+    stays below the penetration tolerance's order.
     """
     G, h, cs = history[-1]
     if cs is None:
@@ -367,6 +370,8 @@ def _merge_rows(
     seen = set(_row_keys(cs))
     Gs, hs, parts = [G], [h], [cs]
     for Gk, hk, ck in reversed(history[:-1]):
+        if ck is None or np.max(np.abs(ck.q - cs.q)) > STALE_RADIUS:
+            continue
         keys = _row_keys(ck)
         keep = np.array([k not in seen for k in keys], dtype=bool)
         if keep.any():
