@@ -90,15 +90,19 @@ def square_x():
     return run_flexure(FlexureSetup(mode="scaled", membrane=GRADED, increments=2))
 
 
-def test_scaled_membrane_is_stiffer_and_symmetric_in_load_line(square_x):
-    # Square arrayed: the 5x5 array is symmetric under x <-> y, so both load lines give the same C_f*
-    # (1e-4: QP KKT residuals of 1e-9 on forces ~1, the SQP stops at steps of 1e-9 L); the array must be
-    # far less compliant than the isolated scale.
+def test_scaled_membrane_is_stiffer_than_the_isolated_scale(square_x):
+    # The paper reports 85-93 % less compliance for scaled membranes; here at least half.
     iso = run_flexure(FlexureSetup(mode="isolated", membrane=GRADED, increments=1))
-    ry = run_flexure(FlexureSetup(mode="scaled", load_line="y", membrane=GRADED, increments=2))
-    assert square_x.Cf_star == pytest.approx(ry.Cf_star, rel=1e-4)
     assert square_x.n_scales == 25 and square_x.max_penetration < 1e-9
     assert square_x.Cf_star < 0.5 * iso.Cf_star
+
+
+@pytest.mark.slow
+def test_load_lines_agree_for_the_square_array(square_x):
+    # Square arrayed: the 5x5 array is symmetric under x <-> y, so both load lines give the same C_f*
+    # (1e-4: QP KKT residuals of 1e-9 on forces ~1, the SQP stops at steps of 1e-9 L).
+    ry = run_flexure(FlexureSetup(mode="scaled", load_line="y", membrane=GRADED, increments=2))
+    assert square_x.Cf_star == pytest.approx(ry.Cf_star, rel=1e-4)
 
 
 def test_contact_forces_only_where_scales_touch(square_x):

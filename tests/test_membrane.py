@@ -115,3 +115,19 @@ def test_model_validation():
     with pytest.raises(InvalidDesign, match="integration"):
         MembraneModel(integration="bbar?")
     assert MembraneModel(nu=0.5).nu_eff == pytest.approx(0.4999)
+
+
+def test_graded_axis_grows_geometrically_from_the_fine_lines():
+    # Eq. (1): both edges of a gap of 0.005 are lines, the gap is one element, the sizes grow by at
+    # most the ratio gamma (plus 10 %: each interval is stretched to a whole number of elements) and never
+    # exceed h.
+    fine = (0.9975, 1.0025)
+    x = graded_axis(-5.0, 5.0, 0.5, (0.0,), fine, h_min=0.005, growth=1.5)
+    dx = np.diff(x)
+    for f in fine:
+        assert np.min(np.abs(x - f)) < 1e-12
+    k = int(np.argmin(np.abs(x - 0.9975)))
+    assert dx[k] == pytest.approx(0.005, rel=1e-9)
+    assert dx.max() <= 0.5 + 1e-12
+    assert np.all(dx[1:] / dx[:-1] < 1.5 * 1.1) and np.all(dx[:-1] / dx[1:] < 1.5 * 1.1)
+    assert len(x) < 60
