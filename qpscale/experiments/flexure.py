@@ -31,7 +31,6 @@ PENETRATION_TOL = 1e-9
 STEP_TOL = 1e-9  # L: largest change of a retained DOF (scale DOFs, support and plate u_z)
 ACCURACY = "high"  # KKT tolerance 1e-9 of each QP
 MAX_ITER = 60
-STALE_RADIUS = 1e-4  # L or rad: farthest linearisation point whose rows are still kept
 ROW_MEMORY = 4  # linearisations whose contact rows stay in the QP (_merge_rows)
 
 
@@ -352,36 +351,55 @@ def _exact_penetration(model: FlexureModel, z: Array, z_plate: float) -> float:
 
 
 def _merge_rows(
-    history: list[tuple[Array, Array, ContactSet | None]],
+    model: FlexureModel, history: list[tuple[Array, Array, ContactSet | None]], z: Array
 ) -> tuple[Array, Array, ContactSet | None]:
     """The current contact rows plus, for contact points that just left the set, their last rows.
 
     Near-coincident faces make the clipped point set flicker between linearisations (a cycle of
     2-4 sets was seen on the square array); keeping the rows of the last ``ROW_MEMORY``
     linearisations, each at its own linearisation point, lets the iteration settle on their
-    union (formulations/membrane.md sec. 8).  Stale rows are first-order accurate about a point
-    that differs from the current one by the last steps; only linearisations within
-    ``STALE_RADIUS`` of the current ``z`` are kept, so their error (quadratic in that distance)
-    stays below the penetration tolerance's order.
+    union (formulations/membrane.md sec. 8).  Stale rows are re-linearised at the current
+    ``z``: their material points follow their scales' exact rigid motion (``_relinearise``).
     """
     G, h, cs = history[-1]
     if cs is None:
         return G, h, None
     seen = set(_row_keys(cs))
     Gs, hs, parts = [G], [h], [cs]
-    for Gk, hk, ck in reversed(history[:-1]):
-        if ck is None or np.max(np.abs(ck.q - cs.q)) > STALE_RADIUS:
-            continue
+    for _, _, ck in reversed(history[:-1]):
         keys = _row_keys(ck)
         keep = np.array([k not in seen for k in keys], dtype=bool)
         if keep.any():
             seen.update(k for k, kp in zip(keys, keep) if kp)
-            Gs.append(Gk[keep])
-            hs.append(hk[keep])
-            parts.append(_take(ck, keep))
+            moved = _relinearise(_take(ck, keep), model.patch, cs)
+            J = sp.csr_matrix(gap_jacobian(moved, model.patch, cs.q)).toarray()
+            Gk = np.zeros((moved.m, len(z)))
+            Gk[:, : model.n_q] = -J
+            Gs.append(Gk)
+            hs.append(moved.gap - J @ z[: model.n_q])
+            parts.append(moved)
     if len(parts) == 1:
         return G, h, cs
     return np.vstack(Gs), np.concatenate(hs), _concat(parts)
+
+
+def _relinearise(ck: ContactSet, patch: Patch, cs: ContactSet) -> ContactSet:
+    """Rows of ``ck`` moved to the configuration of ``cs``: points ride on their scales, the normal on a."""
+    Ra_old, Ra = _rotations(ck.q[ck.a]), _rotations(cs.q[ck.a])
+    Rb_old, Rb = _rotations(ck.q[ck.b]), _rotations(cs.q[ck.b])
+
+    def move(x: Array, idx: np.ndarray, R_old: Array, R: Array) -> Array:
+        local = np.einsum("mji,mj->mi", R_old, x - ck.centre[idx])
+        return cs.centre[idx] + np.einsum("mij,mj->mi", R, local)
+
+    xa, xb = move(ck.xa, ck.a, Ra_old, Ra), move(ck.xb, ck.b, Rb_old, Rb)
+    n = np.einsum("mij,mj->mi", Ra, np.einsum("mji,mj->mi", Ra_old, ck.normal))
+    gap = np.einsum("mi,mi->m", n, xb - xa)
+    return replace(ck, xa=xa, xb=xb, normal=n, gap=gap, q=cs.q, centre=cs.centre)
+
+
+def _rotations(q: Array) -> Array:
+    return np.array([rotation_matrix(u[3:5]) for u in q]).reshape(-1, 3, 3)
 
 
 def _row_keys(cs: ContactSet) -> list[tuple]:
@@ -420,7 +438,7 @@ def _solve_level(
         Gp, hp, _ = _plate_rows(model, z, z_plate)
         Gc, hc, cs = _contact_rows(model, z, cs)
         history = [*history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
-        Gc, hc, merged = _merge_rows(history)
+        Gc, hc, merged = _merge_rows(model, history, z)
         G = sp.csc_matrix(np.vstack([Gp, Gs, Gc]))
         qp = IncrementQP(P, np.zeros(len(z)), G, np.r_[hp, np.zeros(ns), hc])
         try:
