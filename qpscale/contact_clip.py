@@ -160,7 +160,38 @@ def face_points(
     if settings.mode == "vertex":
         keep &= (code >= 0) & (code < 100)
     ti, mi = np.nonzero(keep)
-    return _face_records(p[t], side[t], f[t], g, n_ref, pts, sep, kind, code, ti, mi)
+    clipped = _face_records(p[t], side[t], f[t], g, n_ref, pts, sep, kind, code, ti, mi)
+    if settings.mode == "vertex":
+        return clipped
+    near = _plane_vertices(Vinc[t], Vref[t], Nref[t], bodies, ref_poly, n_ref, p[t], side[t], f[t], g, settings)
+    return _merge(clipped, near)
+
+
+def _plane_vertices(V: Array, Vref: Array, Nref: Array, bodies: Bodies, ref_poly: Array, n_ref: Array,
+                    p, side, f, g, settings) -> Points:
+    """Vertices of the incident piece near the reference piece, against the reference plane (sec. 6).
+
+    The separating-axis depth along a face is the minimum over all vertices of the other piece;
+    next to an obtuse edge of the reference piece (slanted prisms, the dart's 45-degree sides) the
+    deepest vertex can lie beyond the reference face's edge yet inside the piece, and the clipped
+    incident face misses it: the overlap then survives the sequential QP.  Rows are added for the
+    vertices within ``edge_bias`` of the reference piece (signed distance to its face planes), so
+    vertices far beyond the face, which could pass it without touching, stay free.
+    """
+    corner = Vref[np.arange(len(Vref))[:, None], bodies.faces[:, 0][None, :]]
+    inside = np.einsum("tvk,tfk->tvf", V, Nref) - np.einsum("tfk,tfk->tf", corner, Nref)[:, None, :]
+    near = inside.max(axis=2) <= settings.edge_bias
+    sep = np.einsum("tvk,tk->tv", V - ref_poly[:, :1], n_ref)
+    ti, mi = np.nonzero(near & (sep < settings.margin))
+    code = np.broadcast_to(np.arange(V.shape[1]), sep.shape)
+    kind = np.full(sep.shape, VERTEX_FACE)
+    return _face_records(p, side, f, g, n_ref, V, sep, kind, code, ti, mi)
+
+
+def _merge(a: Points, b: Points) -> Points:
+    return Points(np.concatenate([a.pp, b.pp]), np.concatenate([a.normal, b.normal]),
+                  np.concatenate([a.xa, b.xa]), np.concatenate([a.xb, b.xb]), np.concatenate([a.gap, b.gap]),
+                  np.concatenate([a.kind, b.kind]), a.label + b.label)
 
 
 def plane_points(
@@ -175,6 +206,8 @@ def plane_points(
     if not active.any():
         return empty_points()
     p, side, f = _face_tasks(sat, active, settings.tie_tol, memory, settings.edge_bias)
+    outer = ~bodies.internal[np.where(side == 0, sat.pa[p], sat.pb[p]), f]
+    p, side, f = p[outer], side[outer], f[outer]
     VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
     NA, NB = world.normals[sat.a[p], sat.pa[p]], world.normals[sat.b[p], sat.pb[p]]
     on_a = (side == 0)[:, None, None]

@@ -39,6 +39,9 @@ class Bodies:
     face_size : ndarray (nf,) of int
     edges : ndarray (ne, 2) of int
     edge_class : ndarray (ne,) of int
+    internal : ndarray (P, nf) of bool
+        Side faces on the cut between two pieces of one scale (the dart's symmetry plane): inside
+        the scale, so never a contact certificate.
     """
 
     verts: Array
@@ -48,6 +51,7 @@ class Bodies:
     face_size: np.ndarray
     edges: np.ndarray
     edge_class: np.ndarray
+    internal: np.ndarray
 
 
 def _edge_classes(verts: Array, edges: np.ndarray) -> tuple[np.ndarray, list[int]]:
@@ -64,6 +68,21 @@ def _edge_classes(verts: Array, edges: np.ndarray) -> tuple[np.ndarray, list[int
             cls[e] = len(reps)
             reps.append(e)
     return cls, reps
+
+
+def _internal_faces(pieces: list) -> np.ndarray:
+    """(P, nf) mask of side faces whose base edge another piece of the same scale shares."""
+    n_faces = len(pieces[0].faces)
+    out = np.zeros((len(pieces), n_faces), dtype=bool)
+    edges = [{tuple(np.round(np.r_[p.base[i], p.base[(i + 1) % p.n_base]], 9)) for i in range(p.n_base)}
+             for p in pieces]
+    for k, p in enumerate(pieces):
+        for i in range(p.n_base):
+            a, b = p.base[i], p.base[(i + 1) % p.n_base]
+            reverse = tuple(np.round(np.r_[b, a], 9))
+            if any(reverse in e for j, e in enumerate(edges) if j != k):
+                out[k, 2 + i] = True  # faces: bottom, top, then side i
+    return out
 
 
 def bodies_of(patch: Patch) -> Bodies:
@@ -84,7 +103,8 @@ def bodies_of(patch: Patch) -> Bodies:
     normals = np.array([[p.face_normals for p in ps] for ps in prisms])
     d = verts[:, :, edges[reps, 1]] - verts[:, :, edges[reps, 0]]
     dirs = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    out = Bodies(verts, normals, dirs, faces, np.array([len(f) for f in faces_list]), edges, cls)
+    out = Bodies(verts, normals, dirs, faces, np.array([len(f) for f in faces_list]), edges, cls,
+                 _internal_faces(prisms[0]))
     _CACHE[id(patch)] = (weakref.ref(patch), out)
     return out
 

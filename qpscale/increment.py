@@ -81,7 +81,7 @@ class SQPSettings:
 
     solver: str = "clarabel"
     accuracy: str | float = "high"
-    step_tol: float = 1e-10
+    step_tol: float = 1e-8
     penetration_tol: float = 1e-9
     max_iter: int = 60
 
@@ -159,7 +159,15 @@ class _Anderson:
         self.f.clear()
 
     def step(self, x: np.ndarray, f: np.ndarray) -> np.ndarray:
-        """Next iterate from the current one and its QP step."""
+        """Next iterate from the current one and its QP step.
+
+        Safeguards: a step that grew the residual restarts the history with a plain step (the
+        extrapolation had left the region where the map is smooth), and the least-squares
+        problem is regularised by 1e-4 |f|^2 so that differences of round-off size (a stagnating
+        residual) give small coefficients instead of cancelling the plain step.
+        """
+        if self.f and np.linalg.norm(f) > np.linalg.norm(self.f[-1]):
+            self.reset()
         self.x.append(x.copy())
         self.f.append(f.copy())
         if len(self.f) > self.depth + 1:
@@ -169,7 +177,8 @@ class _Anderson:
             return x + f
         dF = np.diff(np.array(self.f), axis=0).T
         dG = np.diff(np.array(self.x) + np.array(self.f), axis=0).T
-        gamma, *_ = np.linalg.lstsq(dF, f, rcond=1e-10)
+        mu = 1e-4 * float(f @ f)
+        gamma = np.linalg.solve(dF.T @ dF + mu * np.eye(dF.shape[1]), dF.T @ f)
         return x + f - dG @ gamma
 
 
