@@ -253,9 +253,8 @@ def test_flexure_vtk_series_loads_back(tmp_path, mode):
         return
     scales = meshio.read(tmp_path / f"flexure_scales_{last:04d}.vtu")
     # A plate point on a top face moves down by w; the displacement is linear over the (convex) face,
-    # so some vertex moves at least as far.  Scales sit on the membrane's top (H = 1.5 L).
+    # so some vertex moves at least as far.
     assert scales.point_data["displacement"][:, 2].min() <= -w + 1e-8
-    assert scales.points[:, 2].min() == pytest.approx(1.5 - w, abs=0.05)
     # Contact off: the contact part is written but empty (meshio cannot read back a zero-point .vtu).
     assert (tmp_path / f"flexure_contacts_{last:04d}.vtu").exists()
 
