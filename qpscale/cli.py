@@ -315,8 +315,13 @@ def flexure(
     design = make_design(shape, tiling, slant, slant_dir, gap, thickness, 2)
     nz = max(2, int(round(1.5 / mesh_h)))
     mode = "bare" if bare else "isolated" if isolated else "scaled"
-    setup = FlexureSetup(design=design, mode=mode, load_line=load_line,
-                         membrane=MembraneModel(nu=nu_m, h=mesh_h, nz=nz), solver=solver)
+    setup = FlexureSetup(
+        design=design,
+        mode=mode,
+        load_line=load_line,
+        membrane=MembraneModel(nu=nu_m, h=mesh_h, nz=nz),
+        solver=solver,
+    )
     result = run_flexure(setup)
     payload = {
         "Cf_star": result.Cf_star,
@@ -335,8 +340,10 @@ def flexure(
         payload["vtk"] = str(write_flexure_series(result, vtk))
 
     def summary(p: dict[str, Any]) -> None:
-        console.print(f"[bold]{mode}[/] {design.shape} ({design.tiling}), load line {load_line}: "
-                      f"C_f* = {p['Cf_star']:.5g}, {p['n_scales']} scales, {p['wall_s']:.2f} s")
+        console.print(
+            f"[bold]{mode}[/] {design.shape} ({design.tiling}), load line {load_line}: "
+            f"C_f* = {p['Cf_star']:.5g}, {p['n_scales']} scales, {p['wall_s']:.2f} s"
+        )
 
     emit(payload, as_json, summary)
 

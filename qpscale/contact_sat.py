@@ -74,8 +74,10 @@ def _internal_faces(pieces: list) -> np.ndarray:
     """(P, nf) mask of side faces whose base edge another piece of the same scale shares."""
     n_faces = len(pieces[0].faces)
     out = np.zeros((len(pieces), n_faces), dtype=bool)
-    edges = [{tuple(np.round(np.r_[p.base[i], p.base[(i + 1) % p.n_base]], 9)) for i in range(p.n_base)}
-             for p in pieces]
+    edges = [
+        {tuple(np.round(np.r_[p.base[i], p.base[(i + 1) % p.n_base]], 9)) for i in range(p.n_base)}
+        for p in pieces
+    ]
     for k, p in enumerate(pieces):
         for i in range(p.n_base):
             a, b = p.base[i], p.base[(i + 1) % p.n_base]
@@ -103,8 +105,16 @@ def bodies_of(patch: Patch) -> Bodies:
     normals = np.array([[p.face_normals for p in ps] for ps in prisms])
     d = verts[:, :, edges[reps, 1]] - verts[:, :, edges[reps, 0]]
     dirs = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    out = Bodies(verts, normals, dirs, faces, np.array([len(f) for f in faces_list]), edges, cls,
-                 _internal_faces(prisms[0]))
+    out = Bodies(
+        verts,
+        normals,
+        dirs,
+        faces,
+        np.array([len(f) for f in faces_list]),
+        edges,
+        cls,
+        _internal_faces(prisms[0]),
+    )
     _CACHE[id(patch)] = (weakref.ref(patch), out)
     return out
 

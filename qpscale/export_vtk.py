@@ -18,9 +18,16 @@ from .contact import ContactSet
 from .geometry import rotation_matrix
 from .tiling import Patch
 
-# VTK prism cells by number of base vertices; point order: base, then top (VTK's convention:
-# the wedge's base triangle is clockwise seen from above, the others counter-clockwise).
-_CELL = {3: "wedge", 4: "hexahedron", 6: "hexa_prism"}
+def _prism_cells(nb: int) -> list[tuple[str, np.ndarray]]:
+    """VTK cells of a convex prism with ``nb`` base vertices (base 0..nb-1, top nb..2nb-1).
+
+    A quadrilateral prism is one hexahedron (base counter-clockwise seen from above); any other
+    is a fan of wedges, whose base triangle VTK wants clockwise seen from above.  meshio writes
+    no hexagonal-prism cell, hence the fan for the hexagon.
+    """
+    if nb == 4:
+        return [("hexahedron", np.arange(8))]
+    return [("wedge", np.array([0, k + 1, k, nb, nb + k + 1, nb + k])) for k in range(1, nb - 1)]
 
 
 def scales_mesh(patch: Patch, q: np.ndarray) -> meshio.Mesh:
@@ -34,11 +41,11 @@ def scales_mesh(patch: Patch, q: np.ndarray) -> meshio.Mesh:
         R = rotation_matrix(q[i, 3:5])
         for prism in patch.convex_prisms(i):
             X, nb = prism.vertices, prism.n_base
-            order = np.array([0, 2, 1, 3, 5, 4]) if nb == 3 else np.arange(2 * nb)
             points.append(c + q[i, :3] + X @ R.T)
             ref.append(c + X)
-            cells.setdefault(_CELL[nb], []).append(count + order)
-            ids.setdefault(_CELL[nb], []).append(i)
+            for kind, order in _prism_cells(nb):
+                cells.setdefault(kind, []).append(count + order)
+                ids.setdefault(kind, []).append(i)
             count += 2 * nb
     pts = np.vstack(points)
     blocks = [(kind, np.array(conn)) for kind, conn in cells.items()]

@@ -140,7 +140,7 @@ def assemble_increment(
     )
 
 
-class _Anderson:
+class Anderson:
     """Anderson acceleration (type II, depth m) of the fixed-point map q -> q + dq(q), eq. (6).
 
     The sequential QP with P = K contracts linearly at the ratio of geometric to elastic stiffness;
@@ -183,8 +183,14 @@ class _Anderson:
 
 
 def solve_equilibrium(
-    patch: Patch, K: sp.csc_matrix, q0: np.ndarray, load: LoadPoint, delta: float,
-    contact: ContactSettings | None, settings: SQPSettings, increment: int | None = None,
+    patch: Patch,
+    K: sp.csc_matrix,
+    q0: np.ndarray,
+    load: LoadPoint,
+    delta: float,
+    contact: ContactSettings | None,
+    settings: SQPSettings,
+    increment: int | None = None,
     previous: ContactSet | None = None,
 ) -> Equilibrium:
     """Sequential QP at a fixed load level, eqs. (5)-(7).
@@ -204,7 +210,7 @@ def solve_equilibrium(
     q = np.array(q0, dtype=float, copy=True)
     build_s = solve_s = 0.0
     cs = previous
-    accel = _Anderson()
+    accel = Anderson()
     rows: tuple[str, ...] | None = None
     dq = np.zeros_like(q)
     for it in range(1, settings.max_iter + 1):
@@ -225,13 +231,26 @@ def solve_equilibrium(
             if pen > settings.penetration_tol:
                 continue
             lam = res.z if res.z is not None and cs is not None else np.zeros(0)
-            return Equilibrium(q=q, delta=delta, F=float(res.y[0]), contacts=cs, lam=np.asarray(lam),
-                               iterations=it, penetration=pen, residuals=dict(res.residuals),
-                               build_s=build_s, solve_s=solve_s)
+            return Equilibrium(
+                q=q,
+                delta=delta,
+                F=float(res.y[0]),
+                contacts=cs,
+                lam=np.asarray(lam),
+                iterations=it,
+                penetration=pen,
+                residuals=dict(res.residuals),
+                build_s=build_s,
+                solve_s=solve_s,
+            )
         labels = cs.labels if cs is not None else ()
         if labels != rows:
             accel.reset()
             rows = labels
         q = accel.step(q.reshape(-1), dq.reshape(-1)).reshape(q.shape)
-    raise SolverFailure(settings.solver, "sequential QP did not converge", increment,
-                        f"last |dq| = {np.max(np.abs(dq)):.3g} after {settings.max_iter} iterations")
+    raise SolverFailure(
+        settings.solver,
+        "sequential QP did not converge",
+        increment,
+        f"last |dq| = {np.max(np.abs(dq)):.3g} after {settings.max_iter} iterations",
+    )

@@ -18,7 +18,7 @@ import scipy.sparse.linalg as spla
 
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from .errors import InvalidDesign, SolverFailure
-from .increment import Equilibrium, LoadPoint, _Anderson
+from .increment import Anderson, Equilibrium, LoadPoint
 from .tiling import Patch
 
 SOLVER = "penalty"
@@ -197,7 +197,7 @@ def solve_equilibrium_penalty(
     k = settings.k_pen * substrate_scale(K)
     q = np.array(q0, dtype=float, copy=True)
     build_s = solve_s = 0.0
-    accel, key, cs, dq, steps = _Anderson(), None, previous, np.zeros_like(q), 0
+    accel, key, cs, dq, steps = Anderson(), None, previous, np.zeros_like(q), 0
     for _ in range(settings.max_iter):
         t0 = time.perf_counter()
         lin = _linearise(patch, q, contact, cs)

@@ -19,7 +19,7 @@ from shapely.geometry import Polygon, box
 from ..contact import ContactSet, detect_contacts, gap_jacobian, penetration
 from ..errors import InvalidDesign, SolverFailure
 from ..geometry import Array, rotation_matrix, skew, tangent_operator
-from ..increment import _Anderson
+from ..increment import Anderson
 from ..membrane import MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
 from ..solvers import solve_qp
@@ -432,7 +432,7 @@ def _solve_level(
     ns = len(model.support_idx)
     Gs = np.zeros((ns, len(z)))
     Gs[np.arange(ns), model.support_idx] = -1.0
-    cs, accel, rows, step = previous, _Anderson(), None, np.zeros(0)
+    cs, accel, rows, step = previous, Anderson(), None, np.zeros(0)
     history: list[tuple[Array, Array, ContactSet | None]] = []
     for it in range(1, MAX_ITER + 1):
         Gp, hp, _ = _plate_rows(model, z, z_plate)

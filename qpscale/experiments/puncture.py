@@ -172,8 +172,17 @@ class _Path:
             from ..penalty import PenaltySettings, solve_equilibrium_penalty
 
             settings = self.setup.penalty if self.setup.penalty is not None else PenaltySettings()
-            return solve_equilibrium_penalty(self.patch, self.K, start.q, self.load, delta, self.contact,
-                                             settings, increment=index, previous=start.contacts)
+            return solve_equilibrium_penalty(
+                self.patch,
+                self.K,
+                start.q,
+                self.load,
+                delta,
+                self.contact,
+                settings,
+                increment=index,
+                previous=start.contacts,
+            )
         return solve_equilibrium(
             self.patch,
             self.K,
@@ -409,7 +418,13 @@ def probe_branch(
     if Fc - Fc_pert <= 1e-4 * abs(Fc):
         return info, states, events, solves
     growth = [_asymmetry(s.q, M, perm) / eps for s in pert]
-    k = next(i for i, g in enumerate(growth) if g > 100.0 * max(growth[1], 1.0))
+    k = next((i for i, g in enumerate(growth) if g > 100.0 * max(growth[1], 1.0)), None)
+    if k is None:
+        # F_c dropped but no state's asymmetry outgrew 100 eps: the branch point lies within the
+        # last increment; report the drop without continuing from a state that is not on the branch.
+        info.update({"branched": True, "delta_branch": None, "followed": "perturbed path",
+                     "Fc_branch": Fc_pert})
+        return info, pert, events, solves
     path = _Path(setup, patch, K, _load_point(patch, xy))
     on_branch = path.solve(pert[k], pert[k].delta, k)
     before = [s for s in states if s.delta < pert[k].delta]

@@ -1,0 +1,219 @@
+"""Puncture path: formulations/puncture.md and formulations/increment.md."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from qpscale import Design
+from qpscale.cli import app
+from qpscale.contact import ContactSettings
+from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture, top_vertices
+from qpscale.experiments.symmetry import map_dofs, mirror_through, vertex_orbits
+from qpscale.geometry import tilt
+from qpscale.increment import SQPSettings
+from qpscale.substrate import SubstrateModel, isolated_block
+
+PHI_C = np.deg2rad(13.0)
+SMALL = Design(rings=1)  # 3x3 square array: contact and coupling at a tenth of the 5x5 cost
+
+
+PATH_DEPENDENT = pytest.mark.xfail(
+    strict=True,
+    reason="known defect (issue 5 open): the sticky separating-axis choice of contact.py makes the "
+    "contact certificate history-dependent, so F_c moves by 0.3-4 % with the step size or the sampling, "
+    "the diagonal symmetry breaks at 1e-6 and the load's work departs from the stored energy; "
+    "strict, so this fails loudly once the contact linearisation is path-independent",
+)
+
+
+def _run(design: Design = SMALL, **kw) -> object:
+    return run_puncture(PunctureSetup(design=design, probe=False, **kw))
+
+
+@pytest.mark.parametrize("shape", ["square", "hexagon", "triangle"])
+def test_isolated_scale_obeys_finite_rotation_balance(shape):
+    # F (delta_c cos phi + t sin phi) = K_phi phi at every converged state (puncture.md eq. 1): the
+    # isolated block at nu = 0.5 has no translation-rotation coupling and K_phi isotropic for these
+    # symmetric footprints.  Tolerance 1e-6: the sequential QP stops at |dq| <= 1e-8.
+    result = _run(Design(shape=shape, rings=0))
+    K = isolated_block(shape, 0.5)
+    K_phi = 0.5 * (K[3, 3] + K[4, 4])
+    dc, t = result.delta_c_star, 1.0
+    for state in result.states[1:]:
+        phi = tilt(state.q[0, 3:5])
+        assert state.F * (dc * np.cos(phi) + t * np.sin(phi)) == pytest.approx(K_phi * phi, rel=1e-6)
+    assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-9)
+    small_rotation = PHI_C * K_phi / dc
+    assert result.Fc_star < small_rotation  # the t sin(phi) arm lowers F_c below the paper's estimate
+
+
+def test_worst_vertex_of_isolated_square_is_a_corner():
+    result = run_puncture(PunctureSetup(design=Design(rings=0)))
+    assert result.delta_c_star == pytest.approx(np.sqrt(2.0), rel=1e-12)
+    assert len(result.candidates) == 1  # the four corners form one symmetry orbit
+
+
+@pytest.mark.parametrize(
+    "design,orbits",
+    [
+        (Design(), 1),
+        (Design(shape="hexagon"), 1),
+        (Design(slant_deg=60.0), 2),
+        (Design(slant_deg=60, slant_dir_deg=45), 3),
+    ],
+)
+def test_vertex_orbits_follow_the_symmetry(design, orbits):
+    patch = design.patch()
+    assert len(vertex_orbits(patch, top_vertices(patch))) == orbits
+
+
+def test_backends_agree_on_Fc():
+    # Clarabel, OSQP (polished) and the CVXPY formulation of the same QPs: 1e-6 relative, the
+    # issue's bar; each QP is solved to 1e-9 KKT and the SQP stops at |dq| <= 1e-8.
+    values = {s: _run(sqp=SQPSettings(solver=s)).Fc_star for s in ("clarabel", "osqp", "cvxpy")}
+    ref = values["clarabel"]
+    for solver, value in values.items():
+        assert value == pytest.approx(ref, rel=1e-6), solver
+
+
+@PATH_DEPENDENT
+def test_work_of_the_load_equals_stored_energy():
+    # Frictionless, non-penetrating contact does no work, so int F dw = 1/2 q'Kq at every state.
+    # Trapezoidal rule on 48 increments: the gap closes inside the first step (a kink in F(w)),
+    # which costs ~1e-5 of the final energy once; elsewhere the error is O(h^2).  Bound: 1e-4 of
+    # the final energy at every state.
+    setup = PunctureSetup(design=SMALL, probe=False, increments=48)
+    _, K = build_model(setup)
+    result = run_puncture(setup)
+    work = np.concatenate(
+        [[0.0], np.cumsum(0.5 * np.diff(result.w_star) * (result.F_star[1:] + result.F_star[:-1]))]
+    )
+    energy = np.array([0.5 * s.q.ravel() @ (K @ s.q.ravel()) for s in result.states])
+    assert np.max(np.abs(work - energy)) <= 1e-4 * energy[-1]
+
+
+@PATH_DEPENDENT
+def test_corner_load_is_symmetric_about_the_diagonal():
+    patch = SMALL.patch()
+    corner = np.array([1.0, 1.0])
+    M, perm = mirror_through(patch, corner)
+    result = _run(load_point=(1.0, 1.0))
+    assert not result.branch.get("branched")
+    for state in result.states:
+        # Tolerance 1e-7: the SQP's accuracy (1e-8 per DOF) times a few iterations.
+        assert np.max(np.abs(state.q - map_dofs(state.q, M, perm))) < 1e-7
+
+
+def test_contact_off_gives_no_contact_forces():
+    result = _run(interaction="substrate")
+    assert all(s.contacts is None and len(s.lam) == 0 for s in result.states)
+
+
+def test_coupling_zero_still_solves_and_contact_only_stiffens():
+    isolated = _run(Design(rings=0)).Fc_star
+    coupled = _run(interaction="contact", coupling=0.0).Fc_star
+    assert coupled >= isolated * (1 - 1e-9)
+    _, K = build_model(PunctureSetup(design=SMALL, interaction="contact", coupling=0.0))
+    block = isolated_block("square", 0.5)
+    assert np.allclose(K.toarray()[:5, :5], 0.5 * (block + block.T), atol=1e-12)
+    assert abs(K.toarray()[:5, 5:]).max() == 0.0
+
+
+@PATH_DEPENDENT
+def test_contact_sampling_does_not_change_Fc():
+    # Completeness (SPEC "Contact"): extra points along every clipped edge must not move F_c (0.1 %).
+    coarse = _run().Fc_star
+    fine = _run(contact=ContactSettings(sampling=3)).Fc_star
+    assert fine == pytest.approx(coarse, rel=1e-3)
+
+
+@PATH_DEPENDENT
+def test_Fc_independent_of_increment_size():
+    # F_c is read at tilt = phi_c exactly, so the step only samples the same equilibrium path.
+    a = _run(increments=6).Fc_star
+    b = _run(increments=30).Fc_star
+    assert a == pytest.approx(b, rel=1e-6)
+
+
+def test_array_beats_isolated_and_full_beats_partial():
+    full, substrate = _run().Fc_star, _run(interaction="substrate").Fc_star
+    isolated = _run(Design(rings=0)).Fc_star
+    assert full > substrate > isolated
+
+
+def test_stiffness_uses_substrate_model():
+    setup = PunctureSetup(design=SMALL)
+    patch, K = build_model(setup)
+    assert K.shape == (5 * patch.n_scales,) * 2
+    from qpscale.substrate import stiffness_matrix
+
+    assert abs(K - stiffness_matrix(patch, SubstrateModel())).max() == 0.0
+
+
+runner = CliRunner()
+
+
+def test_cli_puncture_json_contract_and_newtons():
+    result = runner.invoke(app, ["puncture", "--isolated", "--E-s", "150e3", "--L-mm", "2", "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    for key in (
+        "Fc_star",
+        "delta_c_star",
+        "load_point",
+        "tilt_deg",
+        "max_penetration",
+        "increments",
+        "solver",
+        "wall_s",
+        "curve",
+    ):
+        assert key in data
+    assert data["tilt_deg"] == pytest.approx(13.0)
+    # E* L^2 = 150 kPa / 0.75 * (2 mm)^2 = 0.8 N
+    assert data["Fc_N"] == pytest.approx(0.8 * data["Fc_star"], rel=1e-12)
+    assert len(data["curve"]["w_star"]) == len(data["curve"]["F_star"]) == data["increments"] + 1
+
+
+@pytest.mark.parametrize(
+    "args,flag",
+    [
+        (["--interaction", "glue"], "--interaction"),
+        (["--coupling-factor", "1.5"], "--coupling-factor"),
+        (["--phi-c", "0"], "--phi-c"),
+        (["--nu", "0.7"], "--nu"),
+        (["--solver", "nope"], "--solver"),
+        (["--slant", "95"], "--slant"),
+    ],
+)
+def test_cli_puncture_bad_input_exits_2(args, flag):
+    result = runner.invoke(app, ["puncture", "--isolated", *args])
+    assert result.exit_code == 2
+    assert result.stderr.strip().startswith(f"error: {flag}")
+
+
+def test_vtk_series_loads_back(tmp_path):
+    import meshio
+
+    result = runner.invoke(app, ["puncture", "--rings", "1", "--no-probe", "--vtk", str(tmp_path), "--json"])
+    assert result.exit_code == 0, result.output
+    pvd = tmp_path / "puncture.pvd"
+    assert pvd.exists()
+    files = sorted(tmp_path.glob("puncture_scales_*.vtu"))
+    mesh = meshio.read(files[-1])
+    assert mesh.point_data["displacement"].shape == (mesh.points.shape[0], 3)
+    assert set(np.unique(np.concatenate(mesh.cell_data["scale"]))) == set(range(9))
+    contacts = meshio.read(sorted(tmp_path.glob("puncture_contacts_*.vtu"))[-1])
+    assert contacts.point_data["force"].shape[1] == 3
+
+
+@pytest.mark.slow
+def test_paper_validation_scenes_run_and_report_newtons():
+    for design in (Design(rings=0), Design(), Design(slant_deg=63.4)):
+        result = run_puncture(PunctureSetup(design=design))
+        assert 0.1 < result.Fc_star * 0.8 < 10.0  # F_c in newtons (E* L^2 = 0.8 N)
+        assert result.max_penetration <= 1e-9
