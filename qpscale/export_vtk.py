@@ -18,6 +18,7 @@ from .contact import ContactSet
 from .geometry import rotation_matrix
 from .tiling import Patch
 
+
 def _prism_cells(nb: int) -> list[tuple[str, np.ndarray]]:
     """VTK cells of a convex prism with ``nb`` base vertices (base 0..nb-1, top nb..2nb-1).
 

@@ -422,8 +422,9 @@ def probe_branch(
     if k is None:
         # F_c dropped but no state's asymmetry outgrew 100 eps: the branch point lies within the
         # last increment; report the drop without continuing from a state that is not on the branch.
-        info.update({"branched": True, "delta_branch": None, "followed": "perturbed path",
-                     "Fc_branch": Fc_pert})
+        info.update(
+            {"branched": True, "delta_branch": None, "followed": "perturbed path", "Fc_branch": Fc_pert}
+        )
         return info, pert, events, solves
     path = _Path(setup, patch, K, _load_point(patch, xy))
     on_branch = path.solve(pert[k], pert[k].delta, k)
