@@ -176,12 +176,7 @@ def _neighbour_offsets(shape: str, tiling: str, gap: float) -> tuple[tuple[tuple
             for m, (ang, cx, cy) in enumerate(motif):
                 c = i * a1 + j * a2 + np.array([cx, cy])
                 polys[(i, j, m)] = Polygon(rotate2d(inflated, ang) + c)
-    out = []
-    for k in range(len(motif)):
-        here = polys[(0, 0, k)]
-        near = [key for key, p in polys.items() if key != (0, 0, k) and here.distance(p) <= _TOUCH_TOL]
-        out.append(tuple(sorted(near)))
-    return tuple(out)
+    return _near_offsets(polys, len(motif), _TOUCH_TOL)
 
 
 @dataclass(frozen=True)
@@ -269,11 +264,15 @@ def _contact_offsets(
             for m, (ang, cx, cy) in enumerate(motif):
                 b = _site_polygon(shape, ang, i * a1 + j * a2 + np.array([cx, cy]))
                 hulls[(i, j, m)] = MultiPoint(np.vstack([b, b + off])).convex_hull
-    margin = gap + CONTACT_MARGIN * max(1.0, thickness)
+    return _near_offsets(hulls, len(motif), gap + CONTACT_MARGIN * max(1.0, thickness))
+
+
+def _near_offsets(shapes: dict, n_motif: int, tol: float) -> tuple[tuple[tuple[int, int, int], ...], ...]:
+    """For each motif member k, the sites (di, dj, m) whose shape is within ``tol`` of site (0, 0, k)."""
     out = []
-    for k in range(len(motif)):
-        here = hulls[(0, 0, k)]
-        near = [key for key, h in hulls.items() if key != (0, 0, k) and here.distance(h) <= margin]
+    for k in range(n_motif):
+        here = shapes[(0, 0, k)]
+        near = [key for key, p in shapes.items() if key != (0, 0, k) and here.distance(p) <= tol]
         out.append(tuple(sorted(near)))
     return tuple(out)
 
