@@ -219,43 +219,33 @@ def detect_contacts(
 
 
 def _axis_kinds(sat, parts: list[Points]) -> dict:
-    """Per piece pair, every axis its rows came from: ("face", {(side, f)}) or ("edge", {(ci, cj)}).
-
-    All tied axes are remembered, so a symmetric tie stays symmetric in the next linearisation.
-    """
-    found: dict[tuple[int, int, int, int], tuple[str, set]] = {}
+    """Per active piece pair, the axis its rows came from: ("face", side, f) or ("edge", ci, cj)."""
+    kinds: dict[tuple[int, int, int, int], tuple[str, int, int]] = {}
     for part in parts:
         for k, label in zip(part.pp.tolist(), part.label):
             key = (int(sat.a[k]), int(sat.pa[k]), int(sat.b[k]), int(sat.pb[k]))
+            if key in kinds:
+                continue
             head = label.split(":")[0]
             if head.startswith("F"):
-                axis = ("face", (0 if head[1] == "a" else 1, int(head[2:].split("/")[0])))
+                kinds[key] = ("face", 0 if head[1] == "a" else 1, int(head[2:].split("/")[0]))
             elif ":c" in label:
                 ci, cj = label.split(":c")[1].split("/")
-                axis = ("edge", (int(ci), int(cj)))
-            else:
-                continue
-            kind, axes = found.setdefault(key, (axis[0], set()))
-            if kind == axis[0]:
-                axes.add(axis[1])
-    return {key: (kind, tuple(sorted(axes))) for key, (kind, axes) in found.items()}
+                kinds[key] = ("edge", int(ci), int(cj))
+    return kinds
 
 
 def _axis_memory(sat, previous: ContactSet | None) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Remembered (side, face) and (edge class, edge class) axes per pair ``(pairs, 4, 2)``, -1 padded."""
+    """(side, face) and (edge class, edge class) each piece pair used last time (-1 where none)."""
     if previous is None or not previous.axis_kind:
         return None, None
-    faces = np.full((len(sat.sep), _MEMORY, 2), -1, dtype=int)
-    edges = np.full((len(sat.sep), _MEMORY, 2), -1, dtype=int)
+    faces = np.full((len(sat.sep), 2), -1, dtype=int)
+    edges = np.full((len(sat.sep), 2), -1, dtype=int)
     for k in range(len(sat.sep)):
         kind = previous.axis_kind.get((int(sat.a[k]), int(sat.pa[k]), int(sat.b[k]), int(sat.pb[k])))
         if kind is not None:
-            axes = np.array(kind[1][:_MEMORY], dtype=int).reshape(-1, 2)
-            (faces if kind[0] == "face" else edges)[k, : len(axes)] = axes
+            (faces if kind[0] == "face" else edges)[k] = kind[1:]
     return faces, edges
-
-
-_MEMORY = 4
 
 
 def _choose_edge(

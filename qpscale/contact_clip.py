@@ -93,28 +93,25 @@ def _face_tasks(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(piece pair, reference side 0=a/1=b, reference face) of every tied best face axis, eq. (8).
 
-    ``memory`` ``(pairs, k, 2)`` = the (side, face) axes used in the previous linearisation (-1
-    padded): those still within ``bias`` of the best face axis are kept, and only they (sec. 6).
+    ``memory`` ``(pairs, 2)`` = (side, face) used in the previous linearisation (-1: none): it is
+    kept alone while its separation is within ``bias`` of the best face axis (sec. 6).
     """
     best_face = np.maximum(sat.face_a.max(axis=1), sat.face_b.max(axis=1))
     best = best_face[:, None] - tie_tol
-    kept = np.zeros((len(best_face), 0), dtype=bool)
+    sticky = np.zeros(len(best_face), dtype=bool)
     if memory is not None:
-        side, face = memory[..., 0], np.maximum(memory[..., 1], 0)
+        rows = np.flatnonzero(memory[:, 0] >= 0)
         seps = np.where(
-            side == 0,
-            np.take_along_axis(sat.face_a, face, axis=1),
-            np.take_along_axis(sat.face_b, face, axis=1),
+            memory[rows, 0] == 0, sat.face_a[rows, memory[rows, 1]], sat.face_b[rows, memory[rows, 1]]
         )
-        kept = (side >= 0) & (seps >= best_face[:, None] - bias)
-    sticky = kept.any(axis=1)
+        sticky[rows[seps >= best_face[rows] - bias]] = True
     out = []
-    for side_k, seps in enumerate((sat.face_a, sat.face_b)):
+    for side, seps in enumerate((sat.face_a, sat.face_b)):
         p, f = np.nonzero((seps >= best) & (active & ~sticky)[:, None])
-        out.append((p, np.full(len(p), side_k), f))
-    if memory is not None:
-        p, j = np.nonzero(kept & active[:, None])
-        out.append((p, memory[p, j, 0], memory[p, j, 1]))
+        out.append((p, np.full(len(p), side), f))
+    keep = np.flatnonzero(sticky & active)
+    if memory is not None and len(keep):
+        out.append((keep, memory[keep, 0], memory[keep, 1]))
     return tuple(np.concatenate(x) for x in zip(*out))  # type: ignore[return-value]
 
 
@@ -290,9 +287,9 @@ def edge_points(
 ) -> Points:
     """Closest points of the supporting edges for every tied best edge axis (eq. (13)).
 
-    ``memory`` ``(pairs, k, 2)`` holds the edge classes each piece pair used in the previous
-    linearisation (-1 padded); remembered axes are kept while within ``settings.edge_bias`` of the
-    best, so a corner touching a corner does not flip between edge pairs (sec. 6).
+    ``memory`` ``(pairs, 2)`` holds the edge classes each piece pair used in the previous
+    linearisation (-1: none); a remembered axis is kept while it is within ``settings.edge_bias``
+    of the best, so a corner touching a corner does not flip between edge pairs (sec. 6).
     """
     if settings.mode == "vertex" or not active.any():
         return empty_points()
@@ -300,13 +297,11 @@ def edge_points(
     best = flat.max(axis=1)[:, None, None] - settings.tie_tol
     chosen = sat.edge >= best
     if memory is not None:
-        ci, cj = np.maximum(memory[..., 0], 0), np.maximum(memory[..., 1], 0)
-        seps = sat.edge[np.arange(len(flat))[:, None], ci, cj]
-        kept = (memory[..., 0] >= 0) & (seps >= flat.max(axis=1)[:, None] - settings.edge_bias)
-        rows = np.flatnonzero(kept.any(axis=1))
+        rows = np.flatnonzero(memory[:, 0] >= 0)
+        kept = sat.edge[rows, memory[rows, 0], memory[rows, 1]] >= flat[rows].max(axis=1) - settings.edge_bias
+        rows = rows[kept]
         chosen[rows] = False
-        p, j = np.nonzero(kept)
-        chosen[p, memory[p, j, 0], memory[p, j, 1]] = True
+        chosen[rows, memory[rows, 0], memory[rows, 1]] = True
     p, ci, cj = np.nonzero(chosen & active[:, None, None])
     u = sat.edge_axis[p, ci, cj]
     VA, VB = world.verts[sat.a[p], sat.pa[p]], world.verts[sat.b[p], sat.pb[p]]
