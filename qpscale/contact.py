@@ -18,9 +18,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from .contact_clip import KIND_NAMES, Points, edge_points, face_points, plane_points
-from .contact_sat import World, bodies_of, place, separate, tangents
+from .contact_sat import World, bodies_of, place, separate
 from .errors import InvalidDesign
-from .geometry import Array
+from .geometry import Array, tangent_operators
 from .tiling import Patch
 
 MODES = ("full", "vertex")
@@ -316,7 +316,7 @@ def _unique_rows(pp: np.ndarray, normal: Array, xa: Array, xb: Array, tol: float
 
 def _dof_rows(cs: ContactSet, q: Array, centre: Array) -> tuple[Array, Array]:
     """dg/dq_b and dg/dq_a, each ``(m, 5)``: eq. (16)."""
-    T = tangents(q[:, 3:5])
+    T = tangent_operators(q[:, 3:5])
     n = cs.normal
     rb = np.cross(cs.xb - centre[cs.b], n)
     ra = np.cross(cs.xa - centre[cs.a], n)

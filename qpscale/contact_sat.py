@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import Array
+from .geometry import rotation_matrices as rotations
 from .tiling import Patch
 
 # Edge pairs whose unit directions have |d_a x d_b| below this (sine of their angle) give no axis.
@@ -117,39 +118,6 @@ def bodies_of(patch: Patch) -> Bodies:
     )
     _CACHE[id(patch)] = (weakref.ref(patch), out)
     return out
-
-
-def rotations(phi: Array) -> Array:
-    """Rotation matrices ``(n, 3, 3)`` of rotation vectors ``(phi_x, phi_y, 0)``, Rodrigues' formula.
-
-    Vectorised twin of :func:`qpscale.geometry.rotation_matrix` (same Taylor switch at 1e-8).
-    """
-    W = _skew(phi)
-    a = np.hypot(phi[:, 0], phi[:, 1])
-    small = a < 1e-8
-    a_safe = np.where(small, 1.0, a)
-    s1 = np.where(small, 1.0 - a * a / 6.0, np.sin(a_safe) / a_safe)
-    s2 = np.where(small, 0.5 - a * a / 24.0, (1.0 - np.cos(a_safe)) / a_safe**2)
-    return np.eye(3) + s1[:, None, None] * W + s2[:, None, None] * (W @ W)
-
-
-def tangents(phi: Array) -> Array:
-    """Tangent operators ``(n, 3, 2)``: omega = T dphi (vectorised :func:`geometry.tangent_operator`)."""
-    W = _skew(phi)
-    a = np.hypot(phi[:, 0], phi[:, 1])
-    small = a < 1e-6
-    a_safe = np.where(small, 1.0, a)
-    c1 = np.where(small, 0.5, (1.0 - np.cos(a_safe)) / a_safe**2)
-    c2 = np.where(small, 1.0 / 6.0, (a_safe - np.sin(a_safe)) / a_safe**3)
-    T = np.eye(3) + c1[:, None, None] * W + c2[:, None, None] * (W @ W)
-    return T[:, :, :2]
-
-
-def _skew(phi: Array) -> Array:
-    W = np.zeros((phi.shape[0], 3, 3))
-    W[:, 0, 2], W[:, 2, 0] = phi[:, 1], -phi[:, 1]
-    W[:, 1, 2], W[:, 2, 1] = -phi[:, 0], phi[:, 0]
-    return W
 
 
 @dataclass(frozen=True)

@@ -194,6 +194,47 @@ def skew(w: Array) -> Array:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
+def _skews(phi: Array) -> Array:
+    """Cross-product matrices ``(n, 3, 3)`` of the rotation vectors ``(phi_x, phi_y, 0)``."""
+    W = np.zeros((phi.shape[0], 3, 3))
+    W[:, 0, 2], W[:, 2, 0] = phi[:, 1], -phi[:, 1]
+    W[:, 1, 2], W[:, 2, 1] = -phi[:, 0], phi[:, 0]
+    return W
+
+
+def rotation_matrices(phi: Array) -> Array:
+    """Rotation matrices ``(n, 3, 3)`` of rotation vectors ``phi`` ``(n, 2)``, Rodrigues' formula.
+
+    Below 1e-8 rad the closed form loses digits, so the Taylor series is used there.
+    """
+    phi = np.asarray(phi, dtype=float).reshape(-1, 2)
+    W = _skews(phi)
+    a = np.hypot(phi[:, 0], phi[:, 1])
+    small = a < 1e-8
+    a_safe = np.where(small, 1.0, a)
+    s1 = np.where(small, 1.0 - a * a / 6.0, np.sin(a_safe) / a_safe)
+    s2 = np.where(small, 0.5 - a * a / 24.0, (1.0 - np.cos(a_safe)) / a_safe**2)
+    return np.eye(3) + s1[:, None, None] * W + s2[:, None, None] * (W @ W)
+
+
+def tangent_operators(phi: Array) -> Array:
+    """Tangent operators ``(n, 3, 2)`` of rotation vectors ``phi`` ``(n, 2)``: omega = T dphi.
+
+    With R = exp(skew(theta)), theta = (phi_x, phi_y, 0): dR = skew(T dtheta) R where T is the
+    left Jacobian of SO(3) (formulations/contact.md, eq. (2)); the first two columns are kept
+    because phi_z is held at zero.  Below 1e-6 rad its Taylor series is used.
+    """
+    phi = np.asarray(phi, dtype=float).reshape(-1, 2)
+    W = _skews(phi)
+    a = np.hypot(phi[:, 0], phi[:, 1])
+    small = a < 1e-6
+    a_safe = np.where(small, 1.0, a)
+    c1 = np.where(small, 0.5, (1.0 - np.cos(a_safe)) / a_safe**2)
+    c2 = np.where(small, 1.0 / 6.0, (a_safe - np.sin(a_safe)) / a_safe**3)
+    T = np.eye(3) + c1[:, None, None] * W + c2[:, None, None] * (W @ W)
+    return T[:, :, :2]
+
+
 def rotation_matrix(phi: Array) -> Array:
     """Rotation matrix of the rotation vector ``(phi_x, phi_y)`` (phi_z = 0), Rodrigues' formula.
 
@@ -204,30 +245,15 @@ def rotation_matrix(phi: Array) -> Array:
     >>> np.allclose(R @ [0, 0, 1], [1, 0, 0])
     True
     """
-    w = np.array([phi[0], phi[1], 0.0])
-    a = float(np.linalg.norm(w))
-    W = skew(w)
-    if a < 1e-8:
-        # Taylor series: the closed form loses digits for tiny angles.
-        return np.eye(3) + W * (1.0 - a * a / 6.0) + W @ W * (0.5 - a * a / 24.0)
-    return np.eye(3) + np.sin(a) / a * W + (1.0 - np.cos(a)) / (a * a) * W @ W
+    return rotation_matrices(phi)[0]
 
 
 def tangent_operator(phi: Array) -> Array:
     """Map ``(3, 2)`` from rotation-vector increments to the spatial angular increment.
 
-    With R = exp(skew(theta)), theta = (phi_x, phi_y, 0): dR = skew(T dtheta) R where T is
-    the left Jacobian of SO(3) (formulations/contact.md, eq. (2)).  Only the first two
-    columns are returned because phi_z is held at zero.
+    One row of :func:`tangent_operators`.
     """
-    w = np.array([phi[0], phi[1], 0.0])
-    a = float(np.linalg.norm(w))
-    W = skew(w)
-    if a < 1e-6:
-        T = np.eye(3) + 0.5 * W + W @ W / 6.0
-    else:
-        T = np.eye(3) + (1.0 - np.cos(a)) / a**2 * W + (a - np.sin(a)) / a**3 * W @ W
-    return T[:, :2]
+    return tangent_operators(phi)[0]
 
 
 def tilt(phi: Array) -> float:

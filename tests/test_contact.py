@@ -11,8 +11,9 @@ import pytest
 
 from qpscale import Design, InvalidDesign
 from qpscale.contact import ContactSettings, contact_forces, detect_contacts, gap_jacobian, penetration
-from qpscale.contact_sat import rotations, tangents
+from qpscale.geometry import rotation_matrices as rotations
 from qpscale.geometry import rotation_matrix, tangent_operator
+from qpscale.geometry import tangent_operators as tangents
 
 S2 = np.sqrt(2.0)
 
@@ -65,6 +66,11 @@ def test_vectorised_rotations_match_geometry():
     phi = np.vstack([rng.normal(scale=0.5, size=(6, 2)), [[0, 0], [1e-9, -2e-9], [3e-7, 1e-7]]])
     # Same formulas evaluated elementwise: agreement to round-off.
     assert np.allclose(rotations(phi), [rotation_matrix(p) for p in phi], atol=1e-15)
+    # An independent implementation of the exponential map: SciPy's rotation-vector conversion.
+    from scipy.spatial.transform import Rotation
+
+    rotvec = np.column_stack([phi, np.zeros(len(phi))])
+    assert np.allclose(rotations(phi), Rotation.from_rotvec(rotvec).as_matrix(), atol=1e-14)
     assert np.allclose(tangents(phi), [tangent_operator(p) for p in phi], atol=1e-15)
 
 

@@ -18,7 +18,7 @@ from shapely.geometry import Polygon, box
 
 from ..contact import ContactSet, detect_contacts, gap_jacobian, penetration
 from ..errors import InvalidDesign, SolverFailure
-from ..geometry import Array, rotation_matrix, skew, tangent_operator
+from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
 from ..increment import Anderson
 from ..membrane import MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
@@ -399,7 +399,7 @@ def _relinearise(ck: ContactSet, patch: Patch, cs: ContactSet) -> ContactSet:
 
 
 def _rotations(q: Array) -> Array:
-    return np.array([rotation_matrix(u[3:5]) for u in q]).reshape(-1, 3, 3)
+    return rotation_matrices(q[:, 3:5])
 
 
 def _row_keys(cs: ContactSet) -> list[tuple]:
