@@ -24,6 +24,9 @@ from .panels import Panels, mesh_footprints
 
 # Two footprints may touch (gap 0) but not overlap by more than this area, in L^2.
 OVERLAP_TOL = 1e-9
+# Error exponent q of the blocks in the density N, K(N) = K* - C N^-q, used to extrapolate from the
+# densities N and 2N/3 (formulations/substrate.md, eq. (11)); measured 2.5 between N = 4 and 6.
+RICHARDSON_RATE = 2.5
 
 
 @dataclass(frozen=True)
@@ -77,12 +80,14 @@ def rigid_map(panels: Panels, centres: Array) -> Array:
 def _solve_tractions(panels: Panels, nu: float, cross_terms: bool, rhs: Array) -> Array:
     """Tractions ``(3P, k)`` [x; y; z] that produce the panel displacements ``rhs (3P, k)``."""
     P = panels.n
-    ints = panel_integrals(panels.centroids, panels.tris)
+    coupled = cross_terms and nu < 0.5
+    keys = ("1", "x", "y", "xx", "xy", "yy") if coupled else ("1", "xx", "xy", "yy")
+    ints = panel_integrals(panels.centroids, panels.tris, keys)
     g_zz = normal_influence(ints)
     g_tt = tangential_influence(ints, nu)
     del ints["xx"], ints["xy"], ints["yy"]
     try:
-        if cross_terms and nu < 0.5:
+        if coupled:
             g_tz, g_zt = cross_influence(ints, nu)
             G = np.block([[g_tt, g_tz], [g_zt, g_zz]])
             return sla.solve(G, rhs, overwrite_a=True, check_finite=False)
@@ -136,6 +141,34 @@ def punch_blocks(
     return PunchBlocks(K, tuple(sources), panels.n)
 
 
+def coarse_density(n: int) -> int:
+    """The coarser density 2N/3 (rounded down, at least 1) of the Richardson pair (eq. (11))."""
+    return max(1, (2 * int(n)) // 3)
+
+
+def extrapolated_blocks(
+    footprints: list[list[Array]],
+    centres: Array,
+    nu: float,
+    density: list[int] | int,
+    sources: tuple[int, ...] = (0,),
+    cross_terms: bool = True,
+) -> PunchBlocks:
+    """Blocks extrapolated from two panel densities, N and 2N/3 (eq. (11)).
+
+    Same arguments as :func:`punch_blocks`; ``density`` (or its first entry) is the reference
+    density N whose ratio to the coarse one sets the Richardson weight.
+    """
+    dens = [density] * len(footprints) if isinstance(density, int) else list(density)
+    n = int(dens[0])
+    n_c = coarse_density(n)
+    fine = punch_blocks(footprints, centres, nu, dens, sources, cross_terms)
+    coarse = punch_blocks(footprints, centres, nu, [coarse_density(d) for d in dens], sources, cross_terms)
+    q = RICHARDSON_RATE
+    w = n**-q / (n_c**-q - n**-q) if n_c < n else 0.0
+    return PunchBlocks(fine.K + w * (fine.K - coarse.K), fine.sources, fine.n_panels)
+
+
 def shape_pieces(shape: str, angle: float = 0.0, centre: Array | None = None) -> list[Array]:
     """Convex pieces of a base shape rotated by ``angle`` and placed at ``centre``."""
     c = np.zeros(2) if centre is None else np.asarray(centre, dtype=float)
@@ -145,7 +178,11 @@ def shape_pieces(shape: str, angle: float = 0.0, centre: Array | None = None) ->
 def isolated_block(shape: str, nu: float = 0.5, density: int = 6, cross_terms: bool = True) -> Array:
     """Self block ``(5, 5)`` of one scale alone on the half-space (single rigid punch).
 
-    >>> bool(isolated_block("square", 0.5, 3)[2, 2] > 4.0)
+    Extrapolated from the densities ``density`` and 2/3 of it (eq. (11)); at the default 6 every
+    diagonal entry of the five shapes is within 0.1 % of its converged value.
+
+    >>> bool(abs(isolated_block("square", 0.5, 3)[2, 2] / 2.3046 - 1) < 0.005)
     True
     """
-    return punch_blocks([shape_pieces(shape)], np.zeros((1, 2)), nu, density, (0,), cross_terms).K[0, 0]
+    feet = [shape_pieces(shape)]
+    return extrapolated_blocks(feet, np.zeros((1, 2)), nu, density, (0,), cross_terms).K[0, 0]

@@ -21,7 +21,7 @@ from .calibration import Calibration, Coupling
 log = logging.getLogger(__name__)
 
 # Bump when the discretisation changes so that stale calibrations are never reused.
-BEM_VERSION = 1
+BEM_VERSION = 2
 _MEMORY: dict[str, Calibration] = {}
 
 

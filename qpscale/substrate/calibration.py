@@ -15,7 +15,7 @@ import numpy as np
 
 from ..geometry import Array
 from ..tiling import Design
-from .bem import isolated_block, punch_blocks, shape_pieces
+from .bem import extrapolated_blocks, isolated_block, shape_pieces
 
 # DOF signs under a 180-degree rotation about z: u_x, u_y, phi_x, phi_y change sign (eq. (13)).
 R180 = np.diag([-1.0, -1.0, 1.0, -1.0, -1.0])
@@ -77,7 +77,7 @@ def solve_calibration(
     # Far rings carry small couplings: a coarser mesh there keeps the dense solve small.
     density = [refinement if r <= 1 else max(2, refinement // 2) for r in patch.ring]
     ring1 = tuple(int(k) for k in np.flatnonzero(patch.ring == 1))
-    blocks = punch_blocks(feet, patch.centroids, nu, density, (0, *ring1), cross_terms)
+    blocks = extrapolated_blocks(feet, patch.centroids, nu, density, (0, *ring1), cross_terms)
     K = blocks.K
     K00 = K[0, 0]
     asym = [np.linalg.norm(K00 - K00.T)]

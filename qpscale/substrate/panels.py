@@ -17,6 +17,10 @@ from ..geometry import Array
 
 # Exponent of the strip grading 1 - rho_k = (1 - k/N)**GRADING (formulations/substrate.md, eq. (9)).
 GRADING = 3.5
+# Milder grading of the fan triangles on cuts inside a non-convex footprint (eq. (9b)).
+INTERNAL_GRADING = 1.5
+# Vertices closer than this (in L) are the same vertex when cuts between pieces are detected.
+_SAME = 1e-9
 
 
 @dataclass(frozen=True)
@@ -50,9 +54,9 @@ def _signed_areas(tris: Array) -> Array:
     return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
 
 
-def _fan_triangle(c: Array, a: Array, b: Array, n: int) -> list[Array]:
+def _fan_triangle(c: Array, a: Array, b: Array, n: int, grading: float = GRADING) -> list[Array]:
     """Graded strip subdivision of the triangle (c, a, b) into n**2 panels; edge ab is the boundary."""
-    rho = 1.0 - (1.0 - np.arange(n + 1) / n) ** GRADING
+    rho = 1.0 - (1.0 - np.arange(n + 1) / n) ** grading
     levels = []
     for k in range(n + 1):
         tau = 0.5 * (1.0 - np.cos(np.pi * np.arange(k + 1) / max(k, 1)))
@@ -67,16 +71,42 @@ def _fan_triangle(c: Array, a: Array, b: Array, n: int) -> list[Array]:
     return out
 
 
-def piece_panels(piece: Array, n: int) -> Array:
-    """Panels ``(nv * n**2, 3, 2)`` of one convex polygon ``(nv, 2)`` (counter-clockwise)."""
+def piece_panels(piece: Array, n: int, internal: np.ndarray | None = None) -> Array:
+    """Panels of one convex polygon ``(nv, 2)`` (counter-clockwise).
+
+    A fan triangle on a boundary edge gets ``n**2`` graded panels; one on an ``internal`` edge (a
+    cut between convex pieces of one footprint, where the traction is regular) gets
+    ``max(1, n // 2)**2`` panels with a milder grading towards the cut's ends (eq. (9b)).
+    """
     c = piece.mean(axis=0)
+    inner = np.zeros(len(piece), bool) if internal is None else internal
     tris: list[Array] = []
     for i in range(len(piece)):
-        tris += _fan_triangle(c, piece[i], piece[(i + 1) % len(piece)], n)
+        a, b = piece[i], piece[(i + 1) % len(piece)]
+        if inner[i]:
+            tris += _fan_triangle(c, a, b, max(1, n // 2), INTERNAL_GRADING)
+        else:
+            tris += _fan_triangle(c, a, b, n)
     arr = np.array(tris)
     flip = _signed_areas(arr) < 0.0
     arr[flip] = arr[flip][:, ::-1]
     return arr
+
+
+def internal_edges(pieces: list[Array]) -> list[np.ndarray]:
+    """For each piece, which edges (i -> i+1) are shared, reversed, with another piece."""
+    edges = [(p, np.roll(p, -1, axis=0)) for p in pieces]
+    out = []
+    for k, (a, b) in enumerate(edges):
+        inner = np.zeros(len(a), bool)
+        for m, (a2, b2) in enumerate(edges):
+            if m != k:
+                same = (np.abs(a[:, None] - b2[None]).max(-1) < _SAME) & (
+                    np.abs(b[:, None] - a2[None]).max(-1) < _SAME
+                )
+                inner |= same.any(axis=1)
+        out.append(inner)
+    return out
 
 
 def mesh_footprints(footprints: list[list[Array]], density: list[int] | int) -> Panels:
@@ -94,8 +124,9 @@ def mesh_footprints(footprints: list[list[Array]], density: list[int] | int) -> 
         raise InvalidDesign("refinement", density, "integers >= 1")
     tris, owner = [], []
     for k, (pieces, n) in enumerate(zip(footprints, dens)):
-        for piece in pieces:
-            t = piece_panels(np.asarray(piece, dtype=float), int(n))
+        pieces = [np.asarray(p, dtype=float) for p in pieces]
+        for piece, inner in zip(pieces, internal_edges(pieces)):
+            t = piece_panels(piece, int(n), inner)
             tris.append(t)
             owner.append(np.full(len(t), k))
     all_tris = np.concatenate(tris)
