@@ -213,7 +213,11 @@ def puncture(
         help="x y of the load point relative to the scale's reference point, in L "
         "(default: the worst top-face vertex).",
     ),
-    probe: bool = typer.Option(True, "--probe/--no-probe", help="Probe symmetric paths for a lower branch."),
+    probe: bool = typer.Option(
+        True,
+        "--probe/--no-probe",
+        help="Test every state by the second variation and follow branches (symmetric paths held symmetric until unstable).",
+    ),
     E_s: float | None = typer.Option(
         None, "--E-s", help="Substrate modulus in Pa, to report F_c in newtons."
     ),

@@ -17,13 +17,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.sparse as sp
 
-from .contact_clip import KIND_NAMES, Points, edge_points, face_points, plane_points
+from .contact_clip import KIND_NAMES, VERTEX_PLANE, Points, edge_points, face_points, plane_points
+from .contact_plane import SIDE_B, Planes, plane_rows
 from .contact_sat import World, bodies_of, place, separate
 from .errors import InvalidDesign
 from .geometry import Array, tangent_operators
 from .tiling import Patch
 
 MODES = ("full", "vertex")
+FORMULATIONS = ("plane", "feature")
 
 
 @dataclass(frozen=True)
@@ -44,7 +46,13 @@ class ContactSettings:
         Extra equally spaced points on every clipped edge (completeness checks), >= 0.
     mode : str
         ``"full"`` (vertex-face, edge crossings, edge-edge, face-face) or ``"vertex"`` (only
-        polyhedron vertices against faces: an incomplete node-to-surface set).
+        polyhedron vertices against faces: an incomplete node-to-surface set).  Feature
+        formulation only.
+    formulation : str
+        ``"plane"`` (default): every near piece pair carries a separating plane that the QP
+        moves, vertices against it (formulations/contact.md sec. 7; path-independent).
+        ``"feature"``: rows from the best separating axis and its clipped contact features
+        (sections 3-6; the axis choice is kept sticky across linearisations).
     """
 
     margin: float = 0.1
@@ -52,6 +60,7 @@ class ContactSettings:
     edge_bias: float = 1e-3
     sampling: int = 0
     mode: str = "full"
+    formulation: str = "plane"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.margin) and 0.0 < self.margin <= 10.0):
@@ -64,6 +73,8 @@ class ContactSettings:
             raise InvalidDesign("sampling", self.sampling, "integers in [0, 1000]")
         if self.mode not in MODES:
             raise InvalidDesign("mode", self.mode, "{" + ", ".join(MODES) + "}")
+        if self.formulation not in FORMULATIONS:
+            raise InvalidDesign("formulation", self.formulation, "{" + ", ".join(FORMULATIONS) + "}")
 
 
 @dataclass(frozen=True)
@@ -93,6 +104,16 @@ class ContactSet:
     axis_kind : dict
         ``(a, piece_a, b, piece_b) -> ("face", side, f) | ("edge", ci, cj)``: the separating axis
         that gave the rows of each piece pair; passed back as ``previous`` to keep it sticky.
+    planes : Planes or None
+        Separating planes of the plane formulation (their unknowns follow the DOFs in the QP).
+    side : ndarray (m,) of int
+        Plane rows: +1 the row's vertex is xb (on scale b), -1 it is xa (on scale a); 0 for
+        two-body rows of the feature formulation.
+    plane : ndarray (m,) of int
+        Plane index of each row (-1 for two-body rows).
+    plane_memory : dict or None
+        ``key -> (normal, point)``: the planes the next linearisation starts from (after the
+        QP step, :meth:`Planes.advanced`).
     """
 
     a: np.ndarray
@@ -108,9 +129,16 @@ class ContactSet:
     q: Array
     centre: Array
     axis_kind: dict = field(default_factory=dict)
+    planes: Planes | None = None
+    side: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    plane: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    plane_memory: dict | None = None
 
     def __post_init__(self) -> None:
         m = len(self.a)
+        if len(self.side) != m:
+            object.__setattr__(self, "side", np.zeros(m, dtype=int))
+            object.__setattr__(self, "plane", -np.ones(m, dtype=int))
         for name in ("b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kind", "labels"):
             if len(getattr(self, name)) != m:
                 raise InvalidDesign(name, len(getattr(self, name)), f"length {m} (one row per contact point)")
@@ -122,6 +150,11 @@ class ContactSet:
     @property
     def n_scales(self) -> int:
         return int(self.q.shape[0])
+
+    @property
+    def n_extra(self) -> int:
+        """Unknowns the set adds to the QP after the 5 n DOFs (3 per separating plane)."""
+        return 3 * self.planes.count if self.planes is not None else 0
 
     @property
     def kind_names(self) -> tuple[str, ...]:
@@ -168,6 +201,7 @@ def detect_contacts(
     settings: ContactSettings | None = None,
     pairs: np.ndarray | None = None,
     previous: ContactSet | None = None,
+    refresh: float | None = None,
 ) -> ContactSet:
     """Contact points of every candidate pair closer than ``settings.margin`` (section 3).
 
@@ -181,7 +215,11 @@ def detect_contacts(
         Candidate scale pairs; default ``patch.contact_pairs``.
     previous : ContactSet, optional
         The set of the previous linearisation: a piece pair keeps the kind of axis (face or
-        edge-edge) it had unless the other kind beats it by more than ``settings.edge_bias``.
+        edge-edge) it had unless the other kind beats it by more than ``settings.edge_bias``;
+        for the plane formulation, it carries the planes to start from.
+    refresh : float, optional
+        Plane formulation: pairs overlapping by more than this (L) restart their plane from the
+        best separating axis (sec. 7).
 
     Returns
     -------
@@ -202,6 +240,9 @@ def detect_contacts(
     bodies = bodies_of(patch)
     sat = separate(world, pairs)
     active = sat.sep < settings.margin
+    if settings.formulation == "plane":
+        memory = previous.plane_memory if previous is not None else None
+        return _plane_set(world, q, sat, plane_rows(world, sat, active, settings.margin, memory, refresh))
     best_face = np.maximum(sat.face_a.max(axis=1), sat.face_b.max(axis=1))
     best_edge = sat.edge.reshape(len(sat.sep), -1).max(axis=1)
     use_edge = _choose_edge(sat, best_face, best_edge, previous, settings)
@@ -216,6 +257,35 @@ def detect_contacts(
         edge_points(world, sat, bodies, active & use_edge, settings, edge_memory),
     ]
     return replace(_assemble(world, q, sat, parts, settings), axis_kind=_axis_kinds(sat, parts))
+
+
+def _plane_set(world: World, q: Array, sat, rows) -> ContactSet:
+    """ContactSet of the plane rows: the vertex and its projection on the plane as xb / xa."""
+    planes: Planes = rows.planes
+    keys = np.array(planes.keys, dtype=int).reshape(-1, 4)[rows.plane]
+    n = planes.normal[rows.plane]
+    on_b = (rows.side == SIDE_B)[:, None]
+    foot = rows.x - (rows.side * rows.gap)[:, None] * n
+    xb, xa = np.where(on_b, rows.x, foot), np.where(on_b, foot, rows.x)
+    labels = tuple(f"{k[0]}:{k[1]}-{k[2]}:{k[3]} {lab}" for k, lab in zip(keys.tolist(), rows.labels))
+    return ContactSet(
+        keys[:, 0],
+        keys[:, 2],
+        keys[:, 1],
+        keys[:, 3],
+        n,
+        xa,
+        xb,
+        rows.gap,
+        np.full(len(rows.gap), VERTEX_PLANE),
+        labels,
+        q.copy(),
+        world.centre.copy(),
+        planes=planes,
+        side=rows.side,
+        plane=rows.plane,
+        plane_memory=planes.state(),
+    )
 
 
 def _axis_kinds(sat, parts: list[Points]) -> dict:
@@ -315,21 +385,27 @@ def _unique_rows(pp: np.ndarray, normal: Array, xa: Array, xb: Array, tol: float
 
 
 def _dof_rows(cs: ContactSet, q: Array, centre: Array) -> tuple[Array, Array]:
-    """dg/dq_b and dg/dq_a, each ``(m, 5)``: eq. (16)."""
+    """dg/dq_b and dg/dq_a, each ``(m, 5)``: eq. (16).
+
+    A plane row moves only its own vertex (eq. (21)): the other scale's block is zero.
+    """
     T = tangent_operators(q[:, 3:5])
     n = cs.normal
     rb = np.cross(cs.xb - centre[cs.b], n)
     ra = np.cross(cs.xa - centre[cs.a], n)
     wb = np.hstack([n, np.einsum("mji,mj->mi", T[cs.b], rb)])
     wa = np.hstack([n, np.einsum("mji,mj->mi", T[cs.a], ra)])
+    wb[cs.side < 0] = 0.0
+    wa[cs.side > 0] = 0.0
     return wb, -wa
 
 
 def gap_jacobian(cs: ContactSet, patch: Patch, q: Array) -> sp.csr_matrix:
-    """Jacobian ``(m, 5 n)`` of the gaps: dg_k = n_k . (dxb_k - dxa_k), eqs. (14)-(17).
+    """Jacobian ``(m, 5 n + cs.n_extra)`` of the gaps: eqs. (14)-(17) and (21).
 
-    Columns follow scale-major DOF order [u_x, u_y, u_z, phi_x, phi_y] per scale.  Built from
-    triplets (10 entries per row).
+    Columns follow scale-major DOF order [u_x, u_y, u_z, phi_x, phi_y] per scale, then the
+    three unknowns (two normal rotations, one shift) of every separating plane.  Built from
+    triplets (10 entries per row, 13 for plane rows).
     """
     q = _check_q(patch, q)
     centre = np.zeros((patch.n_scales, 3))
@@ -339,7 +415,19 @@ def gap_jacobian(cs: ContactSet, patch: Patch, q: Array) -> sp.csr_matrix:
     rows = np.repeat(np.arange(cs.m), 10)
     cols = np.hstack([5 * cs.b[:, None] + np.arange(5), 5 * cs.a[:, None] + np.arange(5)]).ravel()
     vals = np.hstack([wb, wa]).ravel()
-    return sp.csr_matrix((vals, (rows, cols)), shape=(cs.m, 5 * patch.n_scales))
+    n_dof = 5 * patch.n_scales
+    if cs.planes is not None and cs.planes.count:
+        on = np.flatnonzero(cs.side != 0)
+        j, s = cs.plane[on], cs.side[on].astype(float)
+        x = np.where((cs.side[on] > 0)[:, None], cs.xb[on], cs.xa[on])
+        lever = np.einsum("mki,mk->mi", cs.planes.basis[j], x - cs.planes.point[j])
+        extra = np.hstack([s[:, None] * lever, -s[:, None]])
+        rows = np.r_[rows, np.repeat(on, 3)]
+        cols = np.r_[cols, (n_dof + 3 * j[:, None] + np.arange(3)).ravel()]
+        vals = np.r_[vals, extra.ravel()]
+    J = sp.csr_matrix((vals, (rows, cols)), shape=(cs.m, n_dof + cs.n_extra))
+    J.eliminate_zeros()  # a plane row's other-scale block
+    return J
 
 
 def contact_forces(cs: ContactSet, lam: Array) -> Array:

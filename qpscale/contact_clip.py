@@ -16,8 +16,8 @@ from .contact_sat import SAT, Bodies, World
 from .geometry import Array
 
 # Point kinds (ContactSet.kind); formulations/contact.md, section 3.4.
-VERTEX_FACE, CROSSING, EDGE_EDGE, FACE_FACE, SAMPLE = range(5)
-KIND_NAMES = ("vertex-face", "edge-crossing", "edge-edge", "face-face", "sample")
+VERTEX_FACE, CROSSING, EDGE_EDGE, FACE_FACE, SAMPLE, VERTEX_PLANE = range(6)
+KIND_NAMES = ("vertex-face", "edge-crossing", "edge-edge", "face-face", "sample", "vertex-plane")
 # A point this far outside a side plane still counts as inside (round-off of coplanar faces).
 _CLIP_EPS = 1e-12
 # Incident faces whose normals are this close (in cosine) to the most anti-parallel one tie.

@@ -9,7 +9,7 @@ in ``contact.py``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -22,6 +22,9 @@ from .solvers import solve_qp
 from .tiling import Patch
 
 NDOF = 5
+# Proximal weight on the separating planes' unknowns (formulations/increment.md sec. 2): makes the
+# QP strictly convex in a plane no row pins; zero at a converged state, so it moves no answer.
+PLANE_PROX = 1e-6
 
 
 @dataclass(frozen=True)
@@ -122,21 +125,40 @@ def assemble_increment(
     contacts: ContactSet | None,
     J: sp.csr_matrix | None,
 ) -> IncrementQP:
-    """The QP (4): min 1/2 dq'K dq + (K q)'dq s.t. -J dq <= g, a'dq = -delta - w(q)."""
+    """The QP (4): min 1/2 dq'K dq + (K q)'dq s.t. -J dq <= g, a'dq = -delta - w(q).
+
+    With separating planes (``contacts.n_extra`` > 0) their unknowns follow dq, with the small
+    proximal weight ``PLANE_PROX`` on the diagonal.
+    """
     x = q.reshape(-1)
     a = load.gradient(q)
-    A = sp.csc_matrix(a.reshape(1, -1))
     b = np.array([-delta - load.height_change(q)])
     if contacts is None or J is None or J.shape[0] == 0:
+        A = sp.csc_matrix(a.reshape(1, -1))
         return IncrementQP(P=K, q=K @ x, A=A, b=b, row_labels_A=("load",))
+    extra = contacts.n_extra
+    P = sp.block_diag([K, PLANE_PROX * sp.eye(extra)], format="csc") if extra else K
+    A = sp.csc_matrix(np.r_[a, np.zeros(extra)].reshape(1, -1))
     return IncrementQP(
-        P=K,
-        q=K @ x,
+        P=P,
+        q=np.r_[K @ x, np.zeros(extra)],
         G=sp.csc_matrix(-J),
         h=np.asarray(contacts.gap, dtype=float),
         A=A,
         b=b,
         row_labels_A=("load",),
+    )
+
+
+def _with_fixed(qp: IncrementQP, fixed: np.ndarray, q: np.ndarray) -> IncrementQP:
+    """Append the rows fixed @ (q + dq) = 0 to the equalities of ``qp``."""
+    pad = sp.csc_matrix((fixed.shape[0], qp.n - fixed.shape[1]))
+    rows = sp.hstack([sp.csc_matrix(fixed), pad], format="csc")
+    A = sp.vstack([qp.A, rows], format="csc")
+    b = np.r_[qp.b, -fixed @ q.reshape(-1)]
+    labels = tuple(qp.row_labels_A or ("load",)) + tuple(f"fixed{i}" for i in range(fixed.shape[0]))
+    return IncrementQP(
+        P=qp.P, q=qp.q, G=qp.G, h=qp.h, A=A, b=b, row_labels_G=qp.row_labels_G, row_labels_A=labels
     )
 
 
@@ -182,6 +204,43 @@ class Anderson:
         return x + f - dG @ gamma
 
 
+def _pinned_only(theta: np.ndarray, cs: ContactSet, lam: np.ndarray | None) -> np.ndarray:
+    """Plane unknowns with those of planes no row presses on set to zero (their QP optimum).
+
+    Nothing but the proximal weight fixes such a plane, so the solver returns it only to its
+    tolerance divided by that weight: noise that would move a certificate for no reason.
+    """
+    if lam is None:
+        return theta
+    carried = np.zeros(cs.planes.count, dtype=bool) if cs.planes is not None else np.zeros(0, dtype=bool)
+    floor = max(1e-6 * float(np.max(lam, initial=0.0)), 1e-12)
+    carried[np.unique(cs.plane[(lam > floor) & (cs.plane >= 0)])] = True
+    return np.where(np.repeat(carried, 3), theta, 0.0)
+
+
+def _accelerated(
+    accel: Anderson, q: np.ndarray, dq: np.ndarray, cs: ContactSet | None
+) -> tuple[np.ndarray, ContactSet | None]:
+    """Anderson step of the joint fixed-point map of the DOFs and the separating planes (eq. (6)).
+
+    The planes enter as their normal and point (6 numbers each, normal re-normalised after the
+    step): they converge together with the scales, so extrapolating one without the other would
+    pair an extrapolated configuration with a lagging certificate.
+    """
+    if cs is None or cs.planes is None or not cs.planes.count:
+        return accel.step(q.reshape(-1), dq.reshape(-1)).reshape(q.shape), cs
+    old = cs.planes.state()
+    new = cs.plane_memory or old
+    keys = list(cs.planes.keys)
+    x_pl = np.concatenate([np.r_[old[k][0], old[k][1]] for k in keys])
+    f_pl = np.concatenate([np.r_[new[k][0], new[k][1]] for k in keys]) - x_pl
+    z = accel.step(np.r_[q.reshape(-1), x_pl], np.r_[dq.reshape(-1), f_pl])
+    planes = z[q.size :].reshape(-1, 6)
+    normals = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    memory = {k: (normals[j], planes[j, 3:]) for j, k in enumerate(keys)}
+    return z[: q.size].reshape(q.shape), replace(cs, plane_memory=memory)
+
+
 def solve_equilibrium(
     patch: Patch,
     K: sp.csc_matrix,
@@ -192,14 +251,17 @@ def solve_equilibrium(
     settings: SQPSettings,
     increment: int | None = None,
     previous: ContactSet | None = None,
+    fixed: np.ndarray | None = None,
 ) -> Equilibrium:
     """Sequential QP at a fixed load level, eqs. (5)-(7).
 
     Linearise the loading constraint and the contact gaps at the current configuration, solve
     the QP, update the configuration exactly (finite rotations), repeat until the update is
     below ``step_tol``; then the exact penetration must be below ``penetration_tol``.
-    ``previous`` (the contact set of the starting state) keeps each pair's separating axis
-    sticky across linearisations (formulations/contact.md sec. 6).  While the contact rows stay
+    ``previous`` (the contact set of the starting state) carries the separating planes (or,
+    for the feature formulation, keeps each pair's axis sticky, formulations/contact.md sec. 6).
+    ``fixed`` ``(r, 5 n)``: extra linear constraints fixed @ q = 0 on the configuration (e.g. the
+    antisymmetric modes of a mirror symmetry, to follow a symmetric branch).  While the contact rows stay
     the same, the iterates are Anderson-accelerated (eq. (6)).
 
     Raises
@@ -213,22 +275,31 @@ def solve_equilibrium(
     accel = Anderson()
     rows: tuple[str, ...] | None = None
     dq = np.zeros_like(q)
+    refresh: float | None = None
     for it in range(1, settings.max_iter + 1):
         t0 = time.perf_counter()
-        cs = detect_contacts(patch, q, contact, previous=cs) if contact is not None else None
+        cs = detect_contacts(patch, q, contact, previous=cs, refresh=refresh) if contact is not None else None
+        refresh = None
         J = gap_jacobian(cs, patch, q) if cs is not None and len(cs.gap) else None
         qp = assemble_increment(K, q, load, delta, cs, J)
+        if fixed is not None and len(fixed):
+            qp = _with_fixed(qp, fixed, q)
         build_s += time.perf_counter() - t0
         try:
             res = solve_qp(qp, solver=settings.solver, accuracy=settings.accuracy, check=True)
         except SolverFailure as exc:
             raise SolverFailure(exc.solver, exc.status, increment, exc.detail) from exc
         solve_s += res.build_s + res.solve_s
-        dq = res.x.reshape(q.shape)
+        dq = res.x[: q.size].reshape(q.shape)
+        theta = res.x[q.size :]
+        if cs is not None and cs.planes is not None and len(theta):
+            theta = _pinned_only(theta, cs, res.z)
+            cs = replace(cs, plane_memory=cs.planes.advanced(theta))
         if np.max(np.abs(dq)) <= settings.step_tol:
             q = q + dq
             pen = penetration(patch, q) if contact is not None else 0.0
             if pen > settings.penetration_tol:
+                refresh = settings.penetration_tol
                 continue
             lam = res.z if res.z is not None and cs is not None else np.zeros(0)
             return Equilibrium(
@@ -247,7 +318,7 @@ def solve_equilibrium(
         if labels != rows:
             accel.reset()
             rows = labels
-        q = accel.step(q.reshape(-1), dq.reshape(-1)).reshape(q.shape)
+        q, cs = _accelerated(accel, q, dq, cs)
     raise SolverFailure(
         settings.solver,
         "sequential QP did not converge",

@@ -10,7 +10,7 @@ non-penetration constraints are replaced by contact forces k (-g)_+.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -86,7 +86,8 @@ def _linearise(
 ) -> _Lin:
     if contact is None:
         return _Lin(None, np.zeros(0), None, np.zeros(0, dtype=bool))
-    cs = detect_contacts(patch, q, contact, previous=previous)
+    # Penalty forces act between two scales at contact points: the feature formulation's rows.
+    cs = detect_contacts(patch, q, replace(contact, formulation="feature"), previous=previous)
     if cs.m == 0:
         return _Lin(cs, np.zeros(0), None, np.zeros(0, dtype=bool))
     g = np.asarray(cs.gap, dtype=float)

@@ -15,6 +15,10 @@ from qpscale.geometry import rotation_matrices as rotations
 from qpscale.geometry import rotation_matrix, tangent_operator
 from qpscale.geometry import tangent_operators as tangents
 
+# These tests check the feature formulation's contact points (clipping, edge-edge closest points);
+# the plane formulation has its own tests in tests/test_contact_plane.py.
+FEATURE = ContactSettings(formulation="feature")
+
 S2 = np.sqrt(2.0)
 
 
@@ -79,7 +83,7 @@ def test_cubes_face_to_face_four_points_and_jacobian():
     patch = Design(thickness=2.0, gap=d, rings=1).patch()
     k = neighbour(patch, (2.0 + d, 0.0))
     q = np.zeros((patch.n_scales, 5))
-    cs = detect_contacts(patch, q, pairs=[(0, k)])
+    cs = detect_contacts(patch, q, FEATURE, pairs=[(0, k)])
     assert cs.m == 4
     assert np.allclose(cs.gap, d, atol=1e-14)
     assert np.allclose(cs.normal, [1, 0, 0], atol=1e-14)
@@ -113,14 +117,17 @@ def edge_edge_config(g):
 def test_edge_edge_gap_normal_points_by_hand():
     g = 0.03
     patch, k, q, xa = edge_edge_config(g)
-    cs = detect_contacts(patch, q, pairs=[(0, k)])
+    cs = detect_contacts(patch, q, FEATURE, pairs=[(0, k)])
     assert cs.m == 1 and cs.kind_names == ("edge-edge",)
     assert cs.gap[0] == pytest.approx(g, abs=1e-12)
     assert np.allclose(cs.normal[0], [0, 0, 1], atol=1e-12)
     assert np.allclose(cs.xa[0], xa, atol=1e-12)
     assert np.allclose(cs.xb[0], xa + [0, 0, g], atol=1e-12)
     # The incomplete node-to-surface set misses a crossing of two edges entirely.
-    assert detect_contacts(patch, q, ContactSettings(mode="vertex"), pairs=[(0, k)]).m == 0
+    assert (
+        detect_contacts(patch, q, ContactSettings(mode="vertex", formulation="feature"), pairs=[(0, k)]).m
+        == 0
+    )
     # Overlap of the crossing edges: depth is -g exactly.
     patch, k, q, _ = edge_edge_config(-0.02)
     assert penetration(patch, q, pairs=[(0, k)]) == pytest.approx(0.02, abs=1e-12)
@@ -128,15 +135,15 @@ def test_edge_edge_gap_normal_points_by_hand():
 
 def test_edge_edge_jacobian_matches_redetected_gap():
     patch, k, q, _ = edge_edge_config(0.03)
-    cs = detect_contacts(patch, q, pairs=[(0, k)])
+    cs = detect_contacts(patch, q, FEATURE, pairs=[(0, k)])
     J = gap_jacobian(cs, patch, q).toarray()
     rng = np.random.default_rng(1)
     h = 1e-5
     for _ in range(5):
         dq = np.zeros_like(q)
         dq[[0, k]] = rng.normal(size=(2, 5))
-        gp = detect_contacts(patch, q + h * dq, pairs=[(0, k)]).gap[0]
-        gm = detect_contacts(patch, q - h * dq, pairs=[(0, k)]).gap[0]
+        gp = detect_contacts(patch, q + h * dq, FEATURE, pairs=[(0, k)]).gap[0]
+        gm = detect_contacts(patch, q - h * dq, FEATURE, pairs=[(0, k)]).gap[0]
         # Re-detected edge-edge distance is smooth; central FD error ~h^2 |g''| ~ 1e-10.
         assert (gp - gm) / (2 * h) == pytest.approx(J[0] @ dq.ravel(), abs=1e-8)
 
@@ -153,7 +160,7 @@ def test_vertex_face_points_by_hand():
     # Put b's lowest vertex a height g above the point (0.1, -0.2) of a's top face (z = t = 1).
     target = np.array([0.1, -0.2, 1.0 + g])
     q[k, :3] = target - low - np.append(patch.centroids[k], 0.0)
-    cs = detect_contacts(patch, q, pairs=[(0, k)])
+    cs = detect_contacts(patch, q, FEATURE, pairs=[(0, k)])
     assert np.allclose(cs.normal, [0, 0, 1], atol=1e-12)
     i = int(np.argmin(cs.gap))
     assert cs.gap[i] == pytest.approx(g, abs=1e-12) and cs.kind_names[i] == "vertex-face"
@@ -175,7 +182,7 @@ def random_state(patch, seed, rot=0.03, disp=0.003):
 def test_jacobian_against_finite_differences(shape):
     patch = Design(shape=shape, rings=1, slant_deg=30.0 if shape == "square" else 0.0).patch()
     q = random_state(patch, 3)
-    cs = detect_contacts(patch, q)
+    cs = detect_contacts(patch, q, FEATURE)
     assert cs.m > 10
     # Central differences, h = 1e-6: truncation h^2 |g''| ~ 1e-12, round-off 1e-16/h ~ 1e-10.
     J = gap_jacobian(cs, patch, q)
@@ -190,7 +197,7 @@ def test_contact_forces_balance_for_a_pair():
     patch = Design(rings=1).patch()
     q = random_state(patch, 5)
     q[:, 3:] = 0.0
-    cs = detect_contacts(patch, q)
+    cs = detect_contacts(patch, q, FEATURE)
     F = contact_forces(cs, np.ones(cs.m))
     # Equal and opposite forces: the total force vanishes (Newton's third law).
     assert np.allclose(F[:, :3].sum(axis=0), 0.0, atol=1e-13)
@@ -221,7 +228,7 @@ def test_symmetric_tilt_gives_symmetric_contact_set():
     patch = Design().patch()
     q = np.zeros((patch.n_scales, 5))
     q[0, 3:] = 0.06 * np.array([1.0, -1.0]) / S2
-    cs = detect_contacts(patch, q)
+    cs = detect_contacts(patch, q, FEATURE)
     rows, mirrored = canonical_rows(cs), canonical_rows(cs, reflect_index(patch))
     # Every row has its mirror image among the rows (round-off of the rotation only, 1e-9).
     d = np.abs(rows[:, None, :] - mirrored[None, :, :]).max(axis=2)
@@ -232,8 +239,8 @@ def test_symmetric_tilt_gives_symmetric_contact_set():
 def test_sampling_never_finds_a_smaller_gap():
     patch = Design().patch()
     q = random_state(patch, 7, rot=0.05)
-    base = detect_contacts(patch, q)
-    fine = detect_contacts(patch, q, ContactSettings(sampling=7))
+    base = detect_contacts(patch, q, FEATURE)
+    fine = detect_contacts(patch, q, ContactSettings(sampling=7, formulation="feature"))
     assert fine.m > base.m and "sample" in fine.kind_names
     for a, b in {(int(x), int(y)) for x, y in zip(base.a, base.b)}:
         g0 = base.gap[(base.a == a) & (base.b == b)].min()
@@ -265,7 +272,7 @@ def test_slanted_faces_gap_is_d_cos_alpha():
     patch = Design(slant_deg=60.0).patch()
     q = np.zeros((patch.n_scales, 5))
     assert penetration(patch, q) == 0.0
-    cs = detect_contacts(patch, q)
+    cs = detect_contacts(patch, q, FEATURE)
     assert cs.gap.min() >= 0.0
     kx, ky = neighbour(patch, (2 + d, 0)), neighbour(patch, (0, 2 + d))
     # Parallel planes leaning by alpha, offset d along x: distance d |n_x| = d cos(alpha).
@@ -281,7 +288,7 @@ def test_dart_pieces_touch_at_the_gap():
     patch = Design(shape="dart").patch()
     q = np.zeros((patch.n_scales, 5))
     assert penetration(patch, q) == 0.0
-    cs = detect_contacts(patch, q)
+    cs = detect_contacts(patch, q, FEATURE)
     # Parallel base edges stand d apart in every tiling; pieces of one dart are never paired.
     assert cs.gap.min() == pytest.approx(0.005, abs=1e-12)
     assert np.all(cs.a != cs.b)
@@ -290,8 +297,8 @@ def test_dart_pieces_touch_at_the_gap():
 def test_vertex_mode_is_a_subset():
     patch = Design().patch()
     q = random_state(patch, 11, rot=0.05)
-    full = detect_contacts(patch, q)
-    vert = detect_contacts(patch, q, ContactSettings(mode="vertex"))
+    full = detect_contacts(patch, q, FEATURE)
+    vert = detect_contacts(patch, q, ContactSettings(mode="vertex", formulation="feature"))
     assert set(vert.labels) <= set(full.labels)
     assert set(vert.kind_names) <= {"vertex-face", "face-face"}
     assert "edge-crossing" in full.kind_names
@@ -311,6 +318,6 @@ def test_invalid_inputs():
         detect_contacts(patch, np.zeros((2, 5)))
     with pytest.raises(InvalidDesign, match="pairs="):
         penetration(patch, np.zeros((patch.n_scales, 5)), pairs=[(0, 0)])
-    cs = detect_contacts(patch, np.zeros((patch.n_scales, 5)))
+    cs = detect_contacts(patch, np.zeros((patch.n_scales, 5)), FEATURE)
     with pytest.raises(InvalidDesign, match="lam="):
         contact_forces(cs, np.ones(cs.m + 1))

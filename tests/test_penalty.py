@@ -16,6 +16,9 @@ from qpscale.tiling import Design
 
 # 3x3 square, load on the mid-edge top point: contact with 25 active rows, QP path ~1 s.
 LOAD_XY = (1.0, 0.0)
+# The penalty method acts on the feature formulation's two-body contact points, so its limit
+# k_pen -> inf is the QP on those same points (formulations/penalty.md).
+FEATURE = ContactSettings(formulation="feature")
 
 
 def _setup(rings: int, solver: str = "clarabel", k_pen: float = 1e3, **kw) -> PunctureSetup:
@@ -23,6 +26,7 @@ def _setup(rings: int, solver: str = "clarabel", k_pen: float = 1e3, **kw) -> Pu
         design=Design(rings=rings),
         load_point=LOAD_XY,
         probe=False,
+        contact=FEATURE,
         sqp=SQPSettings(solver=solver),
         penalty=PenaltySettings(k_pen=k_pen, **kw),
     )
@@ -45,7 +49,7 @@ def _level(k_pen: float, **kw):
         st.q,
         _load_point(patch, LOAD_XY),
         st.delta,
-        ContactSettings(),
+        FEATURE,
         PenaltySettings(k_pen=k_pen, **kw),
         previous=st.contacts,
     )

@@ -16,7 +16,7 @@ import scipy.sparse as sp
 import shapely
 from shapely.geometry import Polygon, box
 
-from ..contact import ContactSet, detect_contacts, gap_jacobian, penetration
+from ..contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from ..errors import InvalidDesign, SolverFailure
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
 from ..increment import Anderson
@@ -296,18 +296,22 @@ def _plate_rows(model: FlexureModel, z: Array, z_plate: float) -> tuple[Array, A
     return G, h, over
 
 
+FEATURE = ContactSettings(formulation="feature")
+
+
 def _contact_rows(
     model: FlexureModel, z: Array, previous: ContactSet | None
 ) -> tuple[Array, Array, ContactSet | None]:
     """Scale-scale rows ``-J q <= g - J q_n`` from qpscale.contact, eq. (12), and their contact set.
 
-    ``previous`` keeps each pair's separating axis sticky across linearisations.
+    ``previous`` keeps each pair's separating axis sticky across linearisations (the feature
+    formulation: rows tied to two scales, no plane unknowns).
     """
     n = len(z)
     if model.patch is None or model.patch.n_scales < 2 or not model.setup.contact:
         return np.zeros((0, n)), np.zeros(0), None
     q = z[: model.n_q].reshape(-1, 5)
-    cs = detect_contacts(model.patch, q, None, previous=previous)
+    cs = detect_contacts(model.patch, q, FEATURE, previous=previous)
     J = sp.csr_matrix(gap_jacobian(cs, model.patch, q)).toarray()
     G = np.zeros((J.shape[0], n))
     G[:, : model.n_q] = -J

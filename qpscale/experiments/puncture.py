@@ -1,9 +1,10 @@
 """The puncture test: a vertical displacement imposed on a top-face point of the punctured scale.
 
 Implements formulations/puncture.md: the path with adaptive increments (sec. 2), the exact
-location of the failure event tilt = phi_c (sec. 3), the stability probe of symmetric paths
-(sec. 4) and the worst case over the top-face vertices distinct under the design's symmetry
-(sec. 5).  All forces are F* (E* = L = 1, formulations/normalisation.md).
+location of the failure event tilt = phi_c (sec. 3), the stability check of every state and the
+branching of symmetric paths (sec. 4, with qpscale/stability.py) and the worst case over the
+top-face vertices distinct under the design's symmetry (sec. 5).  All forces are F* (E* = L = 1,
+formulations/normalisation.md).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -19,9 +20,10 @@ from ..contact import ContactSettings
 from ..errors import InvalidDesign, SolverFailure
 from ..geometry import tilt
 from ..increment import Equilibrium, LoadPoint, SQPSettings, solve_equilibrium
+from ..stability import Stability, second_variation
 from ..substrate import SubstrateModel, stiffness_matrix
 from ..tiling import Design, Patch
-from .symmetry import map_dofs, mirror_through, vertex_orbits
+from .symmetry import antisymmetric_rows, map_dofs, mirror_through, vertex_orbits
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +82,9 @@ class PunctureSetup:
             raise InvalidDesign("nu", self.nu, "[0, 0.5]")
         if not 2 <= self.increments <= self.max_increments:
             raise InvalidDesign("increments", self.increments, f"[2, {self.max_increments}]")
+        if self.sqp.solver == "osqp" and self.contact.formulation == "plane":
+            # OSQP cannot polish the plane formulation's dependent rows (contact.md sec. 7).
+            object.__setattr__(self, "contact", replace(self.contact, formulation="feature"))
 
     @property
     def coupling_factor(self) -> float:
@@ -156,15 +161,40 @@ def _load_point(patch: Patch, xy: tuple[float, float] | np.ndarray) -> LoadPoint
     return LoadPoint(0, np.array([xy[0], xy[1], patch.design.thickness]))
 
 
-class _Path:
-    """State of one loading path: the solver closure, counters, events."""
+class _Unstable(Exception):
+    """A state of a symmetry-constrained path failed the second-variation test."""
 
-    def __init__(self, setup: PunctureSetup, patch: Patch, K: object, load: LoadPoint) -> None:
+    def __init__(self, before: list[Equilibrium], state: Equilibrium, stability: Stability) -> None:
+        super().__init__("symmetric path lost stability")
+        self.before, self.state, self.stability = before, state, stability
+
+
+# Size of the push along an unstable mode before the path is continued on the branch, in L.
+BRANCH_PUSH = 1e-4
+
+
+class _Path:
+    """State of one loading path: the solver closure, counters, events.
+
+    ``fixed`` (antisymmetric DOF rows) holds the path on a symmetric branch; ``check`` runs the
+    second-variation test on every converged state (formulations/puncture.md sec. 4).
+    """
+
+    def __init__(
+        self,
+        setup: PunctureSetup,
+        patch: Patch,
+        K: object,
+        load: LoadPoint,
+        fixed: np.ndarray | None = None,
+        check: bool = False,
+    ) -> None:
         self.setup, self.patch, self.K, self.load = setup, patch, K, load
         self.contact = setup.contact if setup.contact_on else None
         self.phi_c = np.deg2rad(setup.phi_c_deg)
         self.solves = 0
         self.events: list[dict] = []
+        self.fixed, self.check = fixed, check
 
     def solve(self, start: Equilibrium, delta: float, index: int) -> Equilibrium:
         self.solves += 1
@@ -193,7 +223,58 @@ class _Path:
             self.setup.sqp,
             increment=index,
             previous=start.contacts,
+            fixed=self.fixed,
         )
+
+    def stability(self, eq: Equilibrium) -> Stability:
+        return second_variation(self.patch, self.K, eq, self.load)
+
+    def checked(self, states: list[Equilibrium], eq: Equilibrium) -> Equilibrium:
+        """``eq`` if it is stable; else raise (symmetric path) or continue on the lower branch."""
+        if not self.check:
+            return eq
+        sv = self.stability(eq)
+        if sv.stable:
+            return eq
+        if self.fixed is not None:
+            raise _Unstable(states, eq, sv)
+        return self.branch_off(eq, sv, sides=(1.0, -1.0))
+
+    def branch_off(self, eq: Equilibrium, sv: Stability, sides: tuple[float, ...]) -> Equilibrium:
+        """Push ``eq`` along the unstable mode (each side given), re-solve at the same depth and
+        keep the state of lowest energy (it lies on the branch the path takes)."""
+        K = self.K
+        energy = 0.5 * float(eq.q.ravel() @ (K @ eq.q.ravel()))  # type: ignore[operator]
+        best: tuple[float, Equilibrium] | None = None
+        for side in sides:
+            start = Equilibrium(
+                eq.q + side * BRANCH_PUSH * sv.mode, eq.delta, eq.F, eq.contacts, eq.lam, 0, 0.0
+            )
+            try:
+                moved = self.solve(start, eq.delta, -1)
+            except SolverFailure:
+                continue
+            e = 0.5 * float(moved.q.ravel() @ (K @ moved.q.ravel()))  # type: ignore[operator]
+            if e < energy and (best is None or e < best[0]):
+                best = (e, moved)
+        self.events.append(
+            {
+                "kind": "branch",
+                "delta": eq.delta,
+                "min_eigenvalue": sv.min_eigenvalue,
+                "energy_drop": energy - best[0] if best else 0.0,
+            }
+        )
+        return best[1] if best else eq
+
+    def bisect_branch(
+        self, lo: Equilibrium, hi: Equilibrium, steps: int = 5
+    ) -> tuple[Equilibrium, Equilibrium]:
+        """Narrow the depth where a symmetric path loses stability: (last stable, first unstable)."""
+        for _ in range(steps):
+            mid = self.solve(lo, 0.5 * (lo.delta + hi.delta), -1)
+            lo, hi = (mid, hi) if self.stability(mid).stable else (lo, mid)
+        return lo, hi
 
     def tilt_of(self, eq: Equilibrium) -> float:
         return tilt(eq.q[self.load.scale, 3:5])
@@ -256,11 +337,16 @@ class _Path:
                 continue
             if self.tilt_of(eq) >= self.phi_c:
                 final = self.locate_failure(last, eq, len(states))
+                if self.fixed is not None and self.check:
+                    sv = self.stability(final)
+                    if not sv.stable:
+                        raise _Unstable(states, final, sv)
                 self.events.append(
                     {"kind": "failure", "delta": final.delta, "tilt_deg": self.setup.phi_c_deg}
                 )
                 states.append(final)
                 return states
+            eq = self.checked(states, eq)
             self._record_contact_change(last, eq)
             states.append(eq)
             step = min(max_step, step * _growth(eq.iterations), self._remaining(states))
@@ -325,12 +411,79 @@ def _active_pairs(eq: Equilibrium) -> set[tuple[int, int]]:
     return {(int(a), int(b)) for a, b in zip(eq.contacts.a[on], eq.contacts.b[on])}
 
 
+def _checkable(setup: PunctureSetup) -> bool:
+    """The second-variation test needs the plane formulation's rows (or no contact at all)."""
+    if setup.sqp.solver == "penalty":
+        return False
+    return not setup.contact_on or setup.contact.formulation == "plane"
+
+
 def _one_point(
     setup: PunctureSetup, patch: Patch, K: object, xy: np.ndarray
-) -> tuple[list[Equilibrium], list, int]:
-    path = _Path(setup, patch, K, _load_point(patch, xy))
-    states = path.run()
-    return states, path.events, path.solves
+) -> tuple[list[Equilibrium], list, int, dict]:
+    """The path of one load point and what its stability check found (sec. 4)."""
+    load = _load_point(patch, xy)
+    check = setup.probe and _checkable(setup)
+    mirror = mirror_through(patch, xy) if check and setup.contact_on else None
+    if mirror is None:
+        path = _Path(setup, patch, K, load, check=check)
+        states = path.run()
+        branches = [e for e in path.events if e["kind"] == "branch"]
+        info = {"check": "second variation" if check else "off", "branched": bool(branches)}
+        if branches:
+            info.update({"delta_branch": branches[0]["delta"], "followed": "lower-energy side"})
+        return states, path.events, path.solves, info
+    return _symmetric_point(setup, patch, K, load, xy, mirror)
+
+
+def _symmetric_point(
+    setup: PunctureSetup, patch: Patch, K: object, load: LoadPoint, xy: np.ndarray, mirror: tuple
+) -> tuple[list[Equilibrium], list, int, dict]:
+    """A load point on a mirror line: the symmetric branch, held by constraints, until a state
+    fails the second-variation test; then the branch point is bisected and the path continues,
+    unconstrained, from the state pushed along the unstable mode to a fixed side."""
+    M, perm = mirror
+    sym = _Path(setup, patch, K, load, fixed=antisymmetric_rows(patch.n_scales, M, perm), check=True)
+    info: dict = {"check": "second variation", "mirror": True}
+    try:
+        states = sym.run()
+        info["branched"] = False
+        return states, sym.events, sym.solves, info
+    except _Unstable as exc:
+        lost = exc
+    lo, hi = lost.before[-1], lost.state
+    if lo.delta > 0.0:
+        lo, hi = sym.bisect_branch(lo, hi)
+    sv = sym.stability(hi)
+    free = _Path(setup, patch, K, load, check=True)
+    mode = sv.mode * _side(sv.mode[load.scale], M)
+    on_branch = free.branch_off(hi, Stability(sv.min_eigenvalue, False, mode, sv.active), sides=(1.0,))
+    before = [s for s in lost.before if s.delta < lo.delta] + [lo]
+    states = free.run(before + [on_branch], step=max(hi.delta - lo.delta, 1e-3 * hi.delta))
+    events = [e for e in sym.events if e.get("delta", 0.0) <= lo.delta] + free.events
+    info.update(
+        {
+            "branched": True,
+            "delta_branch": [lo.delta, hi.delta],
+            "min_eigenvalue": sv.min_eigenvalue,
+            "followed": "asymmetric",
+            "asymmetry_at_failure": _asymmetry(states[-1].q, M, perm),
+        }
+    )
+    return states, events, sym.solves + free.solves, info
+
+
+def _side(mode: np.ndarray, M: np.ndarray) -> float:
+    """+1 or -1 so the loaded scale's part of an antisymmetric mode points to a fixed side of the
+    mirror line (its translation across the line, else its rotation about it): every backend
+    then follows the same one of the two mirror-image branches."""
+    normal = np.linalg.eigh(M)[1][:, 0]
+    normal = normal * np.sign(normal[np.argmax(np.abs(normal))])
+    across = float(mode[:2] @ normal)
+    if abs(across) > 1e-6:
+        return float(np.sign(across))
+    along = np.array([-normal[1], normal[0]])
+    return float(np.sign(mode[3:5] @ along)) or 1.0
 
 
 def run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None = None) -> PunctureResult:
@@ -354,17 +507,13 @@ def run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None = 
     for xy in points:
         if progress:
             progress(f"load point ({xy[0]:.3f}, {xy[1]:.3f})")
-        states, events, n = _one_point(setup, patch, K, xy)
+        states, events, n, info = _one_point(setup, patch, K, xy)
         solves += n
-        candidates.append({"load_point": xy.tolist(), "Fc_star": states[-1].F})
+        candidates.append({"load_point": xy.tolist(), "Fc_star": states[-1].F, "branch": info})
         if best is None or states[-1].F < best[0][-1].F:
-            best = (states, events, xy)
+            best = (states, events, xy, info)
     assert best is not None
-    states, events, xy = best
-    branch: dict = {"branched": False, "probe": "off"}
-    if setup.probe:
-        branch, states, events, n = probe_branch(setup, patch, K, xy, states, events)
-        solves += n
+    states, events, xy, branch = best
     return PunctureResult(
         setup=setup,
         Fc_star=states[-1].F,
@@ -381,65 +530,3 @@ def run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None = 
 
 def _asymmetry(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> float:
     return float(np.max(np.abs(q - map_dofs(q, M, perm))))
-
-
-def probe_branch(
-    setup: PunctureSetup,
-    patch: Patch,
-    K: object,
-    xy: np.ndarray,
-    states: list[Equilibrium],
-    events: list,
-) -> tuple[dict, list[Equilibrium], list, int]:
-    """Probe a symmetric path for a lower branch (formulations/puncture.md, sec. 4).
-
-    When the load point lies on a mirror line of the model, rerun with the point moved off the
-    line by eps = 1e-5 delta_c. A stable symmetric path changes F_c by O(eps^2) only; a path that
-    loses stability follows the asymmetric branch, and F_c drops by far more.  Then the branch
-    point is where the perturbed path's asymmetry outgrows eps, and the exact load point is
-    continued from the perturbed state just beyond it, on the branch with the lower F_c.
-    """
-    mirror = mirror_through(patch, xy)
-    if mirror is None:
-        return {"branched": False, "probe": "load point on no mirror line"}, states, events, 0
-    M, perm = mirror
-    normal = np.linalg.eigh(M)[1][:, 0]  # eigenvalue -1: across the mirror line
-    normal = normal * np.sign(normal[np.argmax(np.abs(normal))])  # deterministic side for every backend
-    eps = 1e-5 * max(1.0, float(np.hypot(*xy)))
-    pert, _, solves = _one_point(setup, patch, K, xy + eps * normal)
-    Fc, Fc_pert = states[-1].F, pert[-1].F
-    info = {
-        "branched": False,
-        "probe": "perturbed load point",
-        "eps": eps,
-        "Fc_symmetric": Fc,
-        "Fc_perturbed": Fc_pert,
-    }
-    if Fc - Fc_pert <= 1e-4 * abs(Fc):
-        return info, states, events, solves
-    growth = [_asymmetry(s.q, M, perm) / eps for s in pert]
-    k = next((i for i, g in enumerate(growth) if g > 100.0 * max(growth[1], 1.0)), None)
-    if k is None:
-        # F_c dropped but no state's asymmetry outgrew 100 eps: the branch point lies within the
-        # last increment; report the drop without continuing from a state that is not on the branch.
-        info.update(
-            {"branched": True, "delta_branch": None, "followed": "perturbed path", "Fc_branch": Fc_pert}
-        )
-        return info, pert, events, solves
-    path = _Path(setup, patch, K, _load_point(patch, xy))
-    on_branch = path.solve(pert[k], pert[k].delta, k)
-    before = [s for s in states if s.delta < pert[k].delta]
-    rest = path.run(before + [on_branch], step=pert[k].delta - pert[k - 1].delta)
-    info.update(
-        {
-            "branched": True,
-            "delta_branch": pert[k - 1].delta,
-            "followed": "asymmetric",
-            "side": normal.tolist(),
-            "Fc_symmetric": Fc,
-            "Fc_branch": rest[-1].F,
-        }
-    )
-    events = [e for e in events if e.get("delta", 0.0) < pert[k].delta] + path.events
-    events.append({"kind": "branch", "delta": pert[k - 1].delta, "Fc_symmetric": Fc})
-    return info, rest, events, solves + path.solves

@@ -89,3 +89,14 @@ def map_dofs(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
     out[perm, 2] = q[:, 2]
     out[perm, 3:5] = np.linalg.det(M) * (q[:, 3:5] @ M.T)
     return out
+
+
+def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """Rows ``(r, 5 n)`` spanning the DOF modes the reflection (M, perm) reverses.
+
+    A configuration is mirror-symmetric exactly when these rows annihilate it; imposed as
+    equalities in the increment QP they hold a path on its symmetric branch.
+    """
+    S = np.column_stack([map_dofs(e.reshape(n, 5), M, perm).ravel() for e in np.eye(5 * n)])
+    w, V = np.linalg.eigh(0.5 * (S + S.T))
+    return np.ascontiguousarray(V[:, w < 0].T)

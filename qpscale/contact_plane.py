@@ -1,0 +1,152 @@
+"""Separating-plane contact: every near piece pair carries a plane that the QP moves with the scales.
+
+Implements formulations/contact.md section 7, eqs. (19)-(24).  Two convex pieces do not overlap
+if and only if some plane has every vertex of one on one side and every vertex of the other on
+the other side.  Instead of choosing the features that touch (a separating axis, then clipping,
+which needs a rule for ties), each near piece pair gets such a plane as three extra unknowns of
+the increment QP: two rotations of its normal and a shift along it.  Each vertex within the
+margin of the plane gives one linear row; the QP then places the plane where equilibrium wants
+it, so vertex-face, edge-edge and face-face contact all come out of the same rows and the
+converged state does not depend on which axis the plane started from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .contact_sat import SAT, World
+from .geometry import Array
+
+# Vertex of the piece facing the plane's positive side (b) and of the one behind it (a).
+SIDE_B, SIDE_A = 1, -1
+
+
+@dataclass(frozen=True)
+class Planes:
+    """The separating planes of one linearisation (one per near piece pair).
+
+    Attributes
+    ----------
+    keys : tuple of (a, piece_a, b, piece_b)
+    normal : ndarray (P, 3)
+        Unit normal pointing from piece a towards piece b.
+    point : ndarray (P, 3)
+        A point of the plane near the contact (the centroid of the rows' vertices, projected), in L.
+    basis : ndarray (P, 3, 2)
+        Two unit vectors orthogonal to the normal: the directions its increment may take, eq. (21).
+    """
+
+    keys: tuple[tuple[int, int, int, int], ...]
+    normal: Array
+    point: Array
+    basis: Array
+
+    @property
+    def count(self) -> int:
+        return len(self.keys)
+
+    def state(self) -> dict[tuple[int, int, int, int], tuple[Array, Array]]:
+        """key -> (normal, point): what the next linearisation starts from."""
+        return {k: (self.normal[j], self.point[j]) for j, k in enumerate(self.keys)}
+
+    def advanced(self, theta: Array) -> dict[tuple[int, int, int, int], tuple[Array, Array]]:
+        """The planes moved by the QP's plane unknowns ``theta`` (3 P,): eq. (22), exact on the sphere."""
+        t = np.asarray(theta, dtype=float).reshape(-1, 3)
+        n = self.normal + np.einsum("pij,pj->pi", self.basis, t[:, :2])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        p = self.point + t[:, 2:3] * self.normal
+        return {k: (n[j], p[j]) for j, k in enumerate(self.keys)}
+
+
+def tangent_basis(n: Array) -> Array:
+    """(P, 3, 2) orthonormal pairs spanning the plane orthogonal to each unit row of ``n``."""
+    helper = np.where(np.abs(n[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(helper, n)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(n, e1)
+    return np.stack([e1, e2], axis=2)
+
+
+def best_axes(sat: SAT, world: World, rows: np.ndarray) -> Array:
+    """Unit normal (from a to b) of the best separating axis of each piece pair in ``rows`` (eq. (5))."""
+    fa, fb = sat.face_a[rows], sat.face_b[rows]
+    ed = sat.edge[rows].reshape(len(rows), -1)
+    cand = np.stack([fa.max(axis=1), fb.max(axis=1), ed.max(axis=1)], axis=1)
+    which = np.argmax(cand, axis=1)
+    NA = world.normals[sat.a[rows], sat.pa[rows]]
+    NB = world.normals[sat.b[rows], sat.pb[rows]]
+    k = np.arange(len(rows))
+    u_a = NA[k, fa.argmax(axis=1)]
+    u_b = -NB[k, fb.argmax(axis=1)]
+    ij = ed.argmax(axis=1)
+    nc = sat.edge.shape[1]
+    u_e = sat.edge_axis[rows, ij // nc, ij % nc]
+    return np.where((which == 0)[:, None], u_a, np.where((which == 1)[:, None], u_b, u_e))
+
+
+@dataclass(frozen=True)
+class PlaneRows:
+    """Vertex rows against the planes, eq. (20): gap_k = side_k n_j . (x_k - p_j)."""
+
+    planes: Planes
+    plane: np.ndarray  # (m,) plane index of each row
+    side: np.ndarray  # (m,) SIDE_B or SIDE_A
+    vertex: np.ndarray  # (m,) vertex index within its piece
+    x: Array  # (m, 3) the vertex, current world position
+    gap: Array  # (m,)
+    labels: list[str]
+
+
+def plane_rows(
+    world: World,
+    sat: SAT,
+    active: np.ndarray,
+    margin: float,
+    memory: dict[tuple[int, int, int, int], tuple[Array, Array]] | None,
+    refresh: float | None = None,
+) -> PlaneRows:
+    """Planes of the active piece pairs and the vertex rows within ``margin`` of them.
+
+    A pair keeps the plane of ``memory`` (the previous linearisation, moved by its QP step); a
+    pair that has just come within the margin starts from its best separating axis, the plane
+    half-way between the pieces along it.  The plane's point is re-centred on the rows'
+    vertices (the plane itself is unchanged), which keeps the lever arms of eq. (21) short.
+    With ``refresh``, pairs that overlap by more than it restart from their best axis too: the
+    linearised rotation of a plane can keep satisfying its rows while the pieces overlap (the
+    sequential QP then stalls with the overlap), and the best axis is the shortest way out.
+    """
+    rows = np.flatnonzero(active)
+    keys = [(int(sat.a[k]), int(sat.pa[k]), int(sat.b[k]), int(sat.pb[k])) for k in rows]
+    VA = world.verts[sat.a[rows], sat.pa[rows]]
+    VB = world.verts[sat.b[rows], sat.pb[rows]]
+    n = best_axes(sat, world, rows) if len(rows) else np.zeros((0, 3))
+    h = 0.5 * (np.einsum("pvk,pk->pv", VA, n).max(axis=1) + np.einsum("pvk,pk->pv", VB, n).min(axis=1))
+    p = h[:, None] * n
+    memory = memory or {}
+    overlapping = sat.sep[rows] < -refresh if refresh is not None else np.zeros(len(rows), dtype=bool)
+    for j, key in enumerate(keys):
+        if key in memory and not overlapping[j]:
+            n[j], p[j] = memory[key]
+    ga = np.einsum("pk,pvk->pv", n, p[:, None, :] - VA)
+    gb = np.einsum("pk,pvk->pv", n, VB - p[:, None, :])
+    near_a, near_b = ga < margin, gb < margin
+    # Re-centre the plane point on its rows' vertices (projected): same plane, short lever arms.
+    w = near_a.sum(axis=1) + near_b.sum(axis=1)
+    c = (np.einsum("pv,pvk->pk", near_a, VA) + np.einsum("pv,pvk->pk", near_b, VB)) / np.maximum(w, 1)[
+        :, None
+    ]
+    c = np.where((w > 0)[:, None], c, p)
+    p = c - np.einsum("pk,pk->p", c - p, n)[:, None] * n
+    planes = Planes(tuple(keys), n, p, tangent_basis(n) if len(rows) else np.zeros((0, 3, 2)))
+    ja, va = np.nonzero(near_a)
+    jb, vb = np.nonzero(near_b)
+    plane = np.concatenate([ja, jb])
+    side = np.concatenate([np.full(len(ja), SIDE_A), np.full(len(jb), SIDE_B)])
+    vertex = np.concatenate([va, vb])
+    x = np.concatenate([VA[ja, va], VB[jb, vb]])
+    gap = np.concatenate([ga[ja, va], gb[jb, vb]])
+    order = np.lexsort((vertex, -side, plane))
+    labels = [f"P{'ab'[int(s > 0)]}v{v}" for s, v in zip(side[order].tolist(), vertex[order].tolist())]
+    return PlaneRows(planes, plane[order], side[order], vertex[order], x[order], gap[order], labels)

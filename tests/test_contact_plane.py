@@ -1,0 +1,127 @@
+"""Tests of the separating-plane contact formulation (formulations/contact.md sec. 7)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from qpscale import Design
+from qpscale.contact import ContactSettings, contact_forces, detect_contacts, gap_jacobian, penetration
+from qpscale.contact_plane import tangent_basis
+from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
+from qpscale.geometry import rotation_matrices
+from qpscale.increment import SQPSettings, solve_equilibrium
+
+PLANE = ContactSettings()
+
+
+def _tilted(patch, seed=0, size=0.02):
+    return np.random.default_rng(seed).normal(scale=size, size=(patch.n_scales, 5))
+
+
+def _gaps(patch, cs, q0, q, theta):
+    """Gaps of the rows of ``cs`` (fixed vertices, planes moved by theta), from scratch: eq. (20)."""
+    ref = np.zeros((patch.n_scales, 3))
+    ref[:, :2] = patch.centroids
+    scale = np.where(cs.side > 0, cs.b, cs.a)
+    x0 = np.where((cs.side > 0)[:, None], cs.xb, cs.xa)
+    R0, R = rotation_matrices(q0[:, 3:5]), rotation_matrices(q[:, 3:5])
+    X = np.einsum("mji,mj->mi", R0[scale], x0 - (ref + q0[:, :3])[scale])
+    x = (ref + q[:, :3])[scale] + np.einsum("mij,mj->mi", R[scale], X)
+    th = theta.reshape(-1, 3)[cs.plane]
+    n0, p0 = cs.planes.normal[cs.plane], cs.planes.point[cs.plane]
+    v = n0 + np.einsum("mij,mj->mi", cs.planes.basis[cs.plane], th[:, :2])
+    n = v / np.linalg.norm(v, axis=1, keepdims=True)
+    return cs.side * np.einsum("mk,mk->m", n, x - p0 - th[:, 2:3] * n0)
+
+
+def test_untilted_neighbours_are_split_by_the_mid_plane():
+    # At q = 0 the square array's face neighbours are d = 0.005 apart: the start plane lies half-way,
+    # so every row's gap is d/2 (exact geometry, 1e-12) and the plane normal is the face normal.
+    patch = Design(rings=1).patch()
+    cs = detect_contacts(patch, np.zeros((patch.n_scales, 5)), PLANE)
+    face = [j for j, k in enumerate(cs.planes.keys) if k[:1] == (0,) and k[2] in (1, 2, 3, 4)]
+    for j in face:
+        rows = cs.plane == j
+        assert np.allclose(cs.gap[rows].min(), 0.0025, atol=1e-12)
+        assert np.isclose(np.abs(cs.planes.normal[j]).max(), 1.0, atol=1e-12)
+    assert set(cs.kind_names) == {"vertex-plane"}
+
+
+@pytest.mark.parametrize("shape", ["square", "dart"])
+def test_jacobian_against_finite_differences(shape):
+    # Columns for the DOFs and the plane unknowns against central differences of eq. (20) rebuilt
+    # from scratch; h = 1e-6: truncation ~1e-12, round-off ~1e-10.
+    design = Design(shape=shape, tiling="chevron" if shape == "dart" else "arrayed", rings=1)
+    patch = design.patch()
+    q = _tilted(patch)
+    cs = detect_contacts(patch, q, PLANE)
+    J = gap_jacobian(cs, patch, q).toarray()
+    n_dof = 5 * patch.n_scales
+    rng = np.random.default_rng(1)
+    h = 1e-6
+    for _ in range(3):
+        d = rng.normal(size=n_dof + cs.n_extra)
+        dq, dt = d[:n_dof].reshape(-1, 5), d[n_dof:]
+        fd = (_gaps(patch, cs, q, q + h * dq, h * dt) - _gaps(patch, cs, q, q - h * dq, -h * dt)) / (2 * h)
+        assert np.allclose(J @ d, fd, atol=1e-8)
+    assert np.allclose(_gaps(patch, cs, q, q, np.zeros(cs.n_extra)), cs.gap, atol=1e-12)
+
+
+def test_plane_rows_of_a_pair_sum_to_zero_force():
+    # Stationarity in each plane's unknowns (contact.md sec. 7): the forces its rows put on the two
+    # scales are equal and opposite, so the contact forces of the whole patch sum to zero (Newton's
+    # third law), to the QP's KKT tolerance 1e-9 times a few.
+    setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
+    result = run_puncture(setup)
+    state = result.states[-1]
+    Q = contact_forces(state.contacts, state.lam)
+    assert np.abs(Q[:, :3].sum(axis=0)).max() < 1e-8
+    assert np.abs(Q[:, :3]).max() > 0.1
+    for j in range(state.contacts.planes.count):
+        rows = state.contacts.plane == j
+        assert abs(np.sum(state.lam[rows] * state.contacts.side[rows])) < 1e-8
+
+
+def test_converged_state_does_not_depend_on_the_starting_planes():
+    # Path independence: the same load level solved from planes started on the best axes, and from
+    # the same planes tilted by 0.05 rad, ends in the same state (SQP accuracy 1e-8 per DOF).
+    setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
+    patch, K = build_model(setup)
+    load = _load_point(patch, np.array([1.0, 0.0]))
+    result = run_puncture(setup)
+    state = result.states[len(result.states) // 2]
+    start = result.states[len(result.states) // 2 - 1]
+    cs = start.contacts
+    n = cs.planes.normal + 0.05 * tangent_basis(cs.planes.normal)[:, :, 0]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    tilted = replace(cs, plane_memory={k: (n[j], cs.planes.point[j]) for j, k in enumerate(cs.planes.keys)})
+    a = solve_equilibrium(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=cs)
+    b = solve_equilibrium(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=tilted)
+    assert np.abs(a.q - b.q).max() < 1e-7
+    assert a.F == pytest.approx(b.F, rel=1e-7)
+    assert penetration(patch, b.q) <= 1e-9
+
+
+def test_plane_and_feature_formulations_agree_on_one_load_level():
+    # Two independent contact formulations of the same frictionless problem, one load level solved
+    # from the same converged state (so both start in the same basin: the arrays have several
+    # stable equilibria, formulations/puncture.md sec. 4): F and q agree to the feature
+    # formulation's own accuracy (its clipped points carry ~1e-5 of sticky-axis error).
+    setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
+    patch, K = build_model(setup)
+    load = _load_point(patch, np.array([1.0, 0.0]))
+    result = run_puncture(setup)
+    start, state = result.states[4], result.states[5]
+    feature = ContactSettings(formulation="feature")
+    a = solve_equilibrium(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=start.contacts)
+    b = solve_equilibrium(patch, K, start.q, load, state.delta, feature, SQPSettings())
+    assert a.F == pytest.approx(b.F, rel=1e-4)
+    assert np.abs(a.q - b.q).max() < 1e-4
+
+
+def test_invalid_formulation():
+    with pytest.raises(Exception, match="formulation"):
+        ContactSettings(formulation="penalty")
