@@ -216,7 +216,7 @@ def puncture(
     probe: bool = typer.Option(
         True,
         "--probe/--no-probe",
-        help="Test every state by the second variation and follow branches (symmetric paths held symmetric until unstable).",
+        help="Test every state by the second variation and follow branches.",
     ),
     E_s: float | None = typer.Option(
         None, "--E-s", help="Substrate modulus in Pa, to report F_c in newtons."
