@@ -77,7 +77,7 @@ def solve_calibration(
     # Far rings carry small couplings: a coarser mesh there keeps the dense solve small.
     density = [refinement if r <= 1 else max(2, refinement // 2) for r in patch.ring]
     ring1 = tuple(int(k) for k in np.flatnonzero(patch.ring == 1))
-    blocks = extrapolated_blocks(feet, patch.centroids, nu, density, (0, *ring1), cross_terms)
+    blocks = extrapolated_blocks(feet, patch.centroids, nu, density, (0, *ring1), cross_terms, focus=0)
     K = blocks.K
     K00 = K[0, 0]
     asym = [np.linalg.norm(K00 - K00.T)]

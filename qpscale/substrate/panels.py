@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from shapely.geometry import LineString, Polygon
+from shapely.ops import unary_union
 
 from ..errors import InvalidDesign
 from ..geometry import Array
@@ -71,20 +73,26 @@ def _fan_triangle(c: Array, a: Array, b: Array, n: int, grading: float = GRADING
     return out
 
 
-def piece_panels(piece: Array, n: int, internal: np.ndarray | None = None) -> Array:
+def piece_panels(
+    piece: Array, n: int, internal: np.ndarray | None = None, far: np.ndarray | None = None
+) -> Array:
     """Panels of one convex polygon ``(nv, 2)`` (counter-clockwise).
 
     A fan triangle on a boundary edge gets ``n**2`` graded panels; one on an ``internal`` edge (a
     cut between convex pieces of one footprint, where the traction is regular) gets
-    ``max(1, n // 2)**2`` panels with a milder grading towards the cut's ends (eq. (9b)).
+    ``max(1, n // 2)**2`` panels with a milder grading towards the cut's ends (eq. (9b)); one on a
+    ``far`` edge (far from the footprint under study) gets ``max(1, n // 2)**2`` graded panels.
     """
     c = piece.mean(axis=0)
     inner = np.zeros(len(piece), bool) if internal is None else internal
+    remote = np.zeros(len(piece), bool) if far is None else far
     tris: list[Array] = []
     for i in range(len(piece)):
         a, b = piece[i], piece[(i + 1) % len(piece)]
         if inner[i]:
             tris += _fan_triangle(c, a, b, max(1, n // 2), INTERNAL_GRADING)
+        elif remote[i]:
+            tris += _fan_triangle(c, a, b, max(1, n // 2))
         else:
             tris += _fan_triangle(c, a, b, n)
     arr = np.array(tris)
@@ -109,7 +117,18 @@ def internal_edges(pieces: list[Array]) -> list[np.ndarray]:
     return out
 
 
-def mesh_footprints(footprints: list[list[Array]], density: list[int] | int) -> Panels:
+def far_edges(pieces: list[Array], focus: list[Array], reach: float) -> list[np.ndarray]:
+    """For each piece, which edges lie farther than ``reach`` (in L) from the ``focus`` footprint."""
+    target = unary_union([Polygon(p) for p in focus])
+    return [
+        np.array([LineString([p[i], p[(i + 1) % len(p)]]).distance(target) > reach for i in range(len(p))])
+        for p in pieces
+    ]
+
+
+def mesh_footprints(
+    footprints: list[list[Array]], density: list[int] | int, focus: int | None = None, reach: float = 0.5
+) -> Panels:
     """Panels on every footprint; ``footprints[k]`` is a list of convex pieces (world frame).
 
     Parameters
@@ -118,6 +137,9 @@ def mesh_footprints(footprints: list[list[Array]], density: list[int] | int) -> 
         Convex pieces of each footprint, counter-clockwise, in L.
     density : int or list of int
         Strips per fan triangle N (>= 1), one value or one per footprint.
+    focus : int, optional
+        Footprint under study: edges of the other footprints farther than ``reach`` from it are
+        meshed at half the density (eq. (9c)).
     """
     dens = [density] * len(footprints) if isinstance(density, int) else list(density)
     if any(int(d) != d or d < 1 for d in dens):
@@ -125,8 +147,11 @@ def mesh_footprints(footprints: list[list[Array]], density: list[int] | int) -> 
     tris, owner = [], []
     for k, (pieces, n) in enumerate(zip(footprints, dens)):
         pieces = [np.asarray(p, dtype=float) for p in pieces]
-        for piece, inner in zip(pieces, internal_edges(pieces)):
-            t = piece_panels(piece, int(n), inner)
+        far = [None] * len(pieces)
+        if focus is not None and k != focus:
+            far = far_edges(pieces, footprints[focus], reach)
+        for piece, inner, remote in zip(pieces, internal_edges(pieces), far):
+            t = piece_panels(piece, int(n), inner, remote)
             tris.append(t)
             owner.append(np.full(len(t), k))
     all_tris = np.concatenate(tris)
