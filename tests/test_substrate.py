@@ -232,3 +232,35 @@ def test_calibration_blocks_reflect_footprint_symmetry():
     odd, even = [1, 3], [0, 2, 4]
     assert np.abs(east[np.ix_(odd, even)]).max() < 1e-3 * d.max() ** 2
     assert abs(east[2, 4]) > 1e-2 * d.max() ** 2  # while the even-even coupling is not small
+
+
+def test_positive_definiteness_violation_is_an_error():
+    import scipy.sparse as sp
+
+    from qpscale.errors import QpscaleError
+    from qpscale.substrate import check_positive_definite
+
+    check_positive_definite(sp.csc_matrix(np.diag([1.0, 2.0])))
+    with pytest.raises(QpscaleError, match="positive definite"):
+        check_positive_definite(sp.csc_matrix(np.array([[1.0, 2.0], [2.0, 1.0]])))  # eigenvalue -1
+    with pytest.raises(QpscaleError, match="symmetric"):
+        check_positive_definite(sp.csc_matrix(np.array([[2.0, 1.0], [0.0, 2.0]])))
+
+
+def test_cache_reuses_calibration_keyed_by_discretisation(tmp_path, monkeypatch):
+    from qpscale.substrate import calibrate
+    from qpscale.substrate.cache import clear_memory
+
+    monkeypatch.setenv("QPSCALE_CACHE_DIR", str(tmp_path / "c"))
+    clear_memory()
+    design, model = Design(shape="square", tiling="staggered"), SubstrateModel(refinement=3)
+    first = calibrate(design, model)
+    assert calibrate(design, model) is first  # memory
+    assert len(list((tmp_path / "c").glob("*.npz"))) == 1
+    clear_memory()
+    again = calibrate(design, model)  # disk: the same numbers, not recomputed
+    assert again is not first and again.wall_s == first.wall_s
+    assert np.array_equal(again.K0, first.K0) and len(again.couplings) == len(first.couplings)
+    calibrate(design, model.with_(refinement=4))  # another discretisation is another entry
+    assert len(list((tmp_path / "c").glob("*.npz"))) == 2
+    clear_memory()
