@@ -8,6 +8,7 @@ naming the parameter; a solver failure exits with status 3 and the solver's stat
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections.abc import Callable
 from functools import wraps
@@ -233,6 +234,8 @@ def puncture(
     allowed = [*available_solvers(), "penalty"]
     if solver not in allowed:
         raise InvalidDesign("solver", solver, "{" + ", ".join(allowed) + "}")
+    if E_s is not None and not (math.isfinite(E_s) and E_s > 0):
+        raise InvalidDesign("E_s", E_s, "(0, inf) Pa")  # before the run, not after it
     design = make_design(shape, tiling, slant, slant_dir, gap, thickness, 0 if isolated else rings)
     setup = PunctureSetup(
         design=design,

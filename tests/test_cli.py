@@ -68,3 +68,13 @@ def test_bad_input_exits_2_with_one_line(args, flag):
     assert result.exit_code == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith(f"error: {flag}")
+
+
+@pytest.mark.parametrize("value", ["0", "-150e3"])
+def test_puncture_rejects_nonpositive_substrate_modulus_before_running(value):
+    # E_s <= 0 (issue #4's bad input) is refused up front: exit 2, one line naming the flag, and no
+    # run (the CliRunner would otherwise spend seconds on the puncture path).
+    result = run("puncture", "--E-s", value)
+    assert result.exit_code == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: --E-s")
