@@ -136,10 +136,11 @@ class ContactSet:
 
     def __post_init__(self) -> None:
         m = len(self.a)
-        if len(self.side) != m:
+        if self.planes is None and len(self.side) == 0:  # feature rows: two-body, no plane
             object.__setattr__(self, "side", np.zeros(m, dtype=int))
             object.__setattr__(self, "plane", -np.ones(m, dtype=int))
-        for name in ("b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kind", "labels"):
+        names = ("b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kind", "labels", "side", "plane")
+        for name in names:
             if len(getattr(self, name)) != m:
                 raise InvalidDesign(name, len(getattr(self, name)), f"length {m} (one row per contact point)")
 

@@ -411,7 +411,7 @@ def _row_keys(cs: ContactSet) -> list[tuple]:
     return [(lab, *np.round(x, 3)) for lab, x in zip(cs.labels, cs.xb)]
 
 
-_ROW_FIELDS = ("a", "b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kind")
+_ROW_FIELDS = ("a", "b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kind", "side", "plane")
 
 
 def _take(cs: ContactSet, keep: np.ndarray) -> ContactSet:
