@@ -226,6 +226,11 @@ class _Path:
             fixed=self.fixed,
         )
 
+    def energy(self, eq: Equilibrium) -> float:
+        """Stored energy 1/2 q'Kq of a state (F* L)."""
+        x = eq.q.ravel()
+        return 0.5 * float(x @ (self.K @ x))  # type: ignore[operator]
+
     def stability(self, eq: Equilibrium) -> Stability:
         return second_variation(self.patch, self.K, eq, self.load)
 
@@ -243,8 +248,7 @@ class _Path:
     def branch_off(self, eq: Equilibrium, sv: Stability, sides: tuple[float, ...]) -> Equilibrium:
         """Push ``eq`` along the unstable mode (each side given), re-solve at the same depth and
         keep the state of lowest energy (it lies on the branch the path takes)."""
-        K = self.K
-        energy = 0.5 * float(eq.q.ravel() @ (K @ eq.q.ravel()))  # type: ignore[operator]
+        energy = self.energy(eq)
         best: tuple[float, Equilibrium] | None = None
         for side in sides:
             start = Equilibrium(
@@ -254,7 +258,7 @@ class _Path:
                 moved = self.solve(start, eq.delta, -1)
             except SolverFailure:
                 continue
-            e = 0.5 * float(moved.q.ravel() @ (K @ moved.q.ravel()))  # type: ignore[operator]
+            e = self.energy(moved)
             if e < energy and (best is None or e < best[0]):
                 best = (e, moved)
         self.events.append(
@@ -268,13 +272,19 @@ class _Path:
         return best[1] if best else eq
 
     def bisect_branch(
-        self, lo: Equilibrium, hi: Equilibrium, steps: int = 5
-    ) -> tuple[Equilibrium, Equilibrium]:
-        """Narrow the depth where a symmetric path loses stability: (last stable, first unstable)."""
+        self, lo: Equilibrium, hi: Equilibrium, sv: Stability, steps: int = 5
+    ) -> tuple[Equilibrium, Equilibrium, Stability]:
+        """Narrow the depth where a symmetric path loses stability, from the last stable state
+        ``lo`` and the first unstable one ``hi`` (test result ``sv``): the narrowed pair and the
+        test result of its unstable end."""
         for _ in range(steps):
             mid = self.solve(lo, 0.5 * (lo.delta + hi.delta), -1)
-            lo, hi = (mid, hi) if self.stability(mid).stable else (lo, mid)
-        return lo, hi
+            test = self.stability(mid)
+            if test.stable:
+                lo = mid
+            else:
+                hi, sv = mid, test
+        return lo, hi, sv
 
     def tilt_of(self, eq: Equilibrium) -> float:
         return tilt(eq.q[self.load.scale, 3:5])
@@ -451,13 +461,12 @@ def _symmetric_point(
         return states, sym.events, sym.solves, info
     except _Unstable as exc:
         lost = exc
-    lo, hi = lost.before[-1], lost.state
+    lo, hi, sv = lost.before[-1], lost.state, lost.stability
     if lo.delta > 0.0:
-        lo, hi = sym.bisect_branch(lo, hi)
-    sv = sym.stability(hi)
+        lo, hi, sv = sym.bisect_branch(lo, hi, sv)
     free = _Path(setup, patch, K, load, check=True)
-    mode = sv.mode * _side(sv.mode[load.scale], M)
-    on_branch = free.branch_off(hi, Stability(sv.min_eigenvalue, False, mode, sv.active), sides=(1.0,))
+    sv = replace(sv, mode=sv.mode * _side(sv.mode[load.scale], M))
+    on_branch = free.branch_off(hi, sv, sides=(1.0,))
     before = [s for s in lost.before if s.delta < lo.delta] + [lo]
     states = free.run(before + [on_branch], step=max(hi.delta - lo.delta, 1e-3 * hi.delta))
     events = [e for e in sym.events if e.get("delta", 0.0) <= lo.delta] + free.events
