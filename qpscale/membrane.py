@@ -10,12 +10,13 @@ eqs. (6)-(8)).  Lengths in L, E_m = 1 unless given.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
 import qdldl
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 from skfem import Basis, BilinearForm, ElementHex1, ElementVector, MeshHex
 from skfem.helpers import ddot, div, sym_grad
 
@@ -153,8 +154,17 @@ def assemble_stiffness(model: MembraneModel, mesh: MeshHex) -> sp.csr_matrix:
 
     The deviatoric energy is integrated with 2x2x2 Gauss points, the volumetric one at the
     element centre only (the mean-dilatation B-bar of trilinear hexahedra). DOF ordering is
-    skfem's: node k has DOFs ``3k, 3k+1, 3k+2`` (x, y, z).
+    skfem's: node k has DOFs ``3k, 3k+1, 3k+2`` (x, y, z).  Meshes of axis-parallel boxes (every
+    tensor mesh of ``build_mesh``) take the closed form of eq. (3b); others skfem's assembly.
     """
+    boxes = _box_layout(mesh)
+    if boxes is not None:
+        return _assemble_boxes(model, mesh, *boxes)
+    return assemble_stiffness_skfem(model, mesh)
+
+
+def assemble_stiffness_skfem(model: MembraneModel, mesh: MeshHex) -> sp.csr_matrix:
+    """Eq. (3) by scikit-fem's form assembly (any hexahedral mesh)."""
     mu, kappa = model.lame
     element = ElementVector(ElementHex1())
 
@@ -171,6 +181,62 @@ def assemble_stiffness(model: MembraneModel, mesh: MeshHex) -> sp.csr_matrix:
     reduced = full if model.integration == "full" else Basis(mesh, element, quadrature=_centre_quadrature())
     K = deviatoric.assemble(full) + volumetric.assemble(reduced)
     return sp.csr_matrix(K)
+
+
+def _box_layout(mesh: MeshHex) -> tuple[Array, Array] | None:
+    """Edge lengths ``(n_e, 3)`` and the common corner signs ``(8, 3)`` if every element is an
+    axis-parallel box with the same local node order; else None."""
+    X = mesh.p[:, mesh.t]  # (3, 8, n_e)
+    lo, hi = X.min(axis=1), X.max(axis=1)
+    size = hi - lo
+    if not np.all(size > 0):
+        return None
+    signs = np.where(np.isclose(X, lo[:, None, :], rtol=0, atol=1e-12 * size.max()), -1.0, 1.0)
+    on_corner = np.isclose(X, lo[:, None, :], rtol=0, atol=1e-12 * size.max()) | np.isclose(
+        X, hi[:, None, :], rtol=0, atol=1e-12 * size.max()
+    )
+    if not on_corner.all() or not np.all(signs == signs[:, :, :1]):
+        return None
+    s = signs[:, :, 0].T  # (8, 3)
+    if len(np.unique(s, axis=0)) != 8:
+        return None
+    return size.T, s
+
+
+def _reference_gradients(s: Array, points: Array, weights: Array) -> Array:
+    """``R[k, l, i, j] = sum_g w_g dN_i/dxi_k dN_j/dxi_l`` on [-1, 1]^3 for corner signs ``s``."""
+    xi = 1.0 + s[None, :, :] * points[:, None, :]  # (g, 8, 3): 1 + s_ik xi_k
+    dN = np.empty((len(points), 3, 8))
+    for k in range(3):
+        others = [m for m in range(3) if m != k]
+        dN[:, k] = s[None, :, k] * xi[:, :, others[0]] * xi[:, :, others[1]] / 8.0
+    return np.einsum("g,gki,glj->klij", weights, dN, dN)
+
+
+def _assemble_boxes(model: MembraneModel, mesh: MeshHex, size: Array, s: Array) -> sp.csr_matrix:
+    """Eq. (3b): on a box of edges (a_1, a_2, a_3) every term of eq. (3) is one of nine constant
+    24x24 matrices times ``a_1 a_2 a_3 / (a_k a_l)``."""
+    mu, kappa = model.lame
+    g = 1.0 / np.sqrt(3.0)
+    gauss = np.array([[x, y, z] for x in (-g, g) for y in (-g, g) for z in (-g, g)])
+    Rf = _reference_gradients(s, gauss, np.ones(8))
+    Rc = Rf if model.integration == "full" else _reference_gradients(s, np.zeros((1, 3)), np.full(1, 8.0))
+    eye = np.eye(3)
+    C = np.zeros((3, 3, 8, 3, 8, 3))  # (k, l, i, alpha, j, beta)
+    for k in range(3):
+        for l in range(3):
+            C[k, l] += mu * (k == l) * np.einsum("ij,ab->iajb", Rf[k, l], eye)
+            C[k, l] += mu * np.einsum("ij,a,b->iajb", Rf[k, l], eye[l], eye[k])
+            vol_part = kappa * Rc[k, l] - (2.0 * mu / 3.0) * Rf[k, l]
+            C[k, l] += np.einsum("ij,a,b->iajb", vol_part, eye[k], eye[l])
+    vol = size.prod(axis=1)
+    w = 0.5 * vol[:, None, None] / (size[:, :, None] * size[:, None, :])  # (n_e, 3, 3)
+    Ke = (w.reshape(-1, 9) @ C.reshape(9, -1)).reshape(-1, 24, 24)
+    dofs = (3 * mesh.t.T[:, :, None] + np.arange(3)).reshape(-1, 24)
+    rows = np.broadcast_to(dofs[:, :, None], Ke.shape).ravel()
+    cols = np.broadcast_to(dofs[:, None, :], Ke.shape).ravel()
+    n = 3 * mesh.p.shape[1]
+    return sp.csr_matrix((Ke.ravel(), (rows, cols)), shape=(n, n))
 
 
 def node_dofs(nodes: np.ndarray, comp: int | None = None) -> np.ndarray:
@@ -209,19 +275,32 @@ class Condensed:
         Full nodal displacements from the generalised DOFs (ties and Dirichlet pins applied).
     retained, condensed : ndarray of int
         Indices into the generalised DOFs.
+    K_cr : csc_matrix (n_condensed, m)
+        Coupling block of eq. (6).
+    factor : SuperLU
+        The factorisation of ``K_cc`` (in the fill-reducing order ``perm``), kept for eq. (7).
+    perm : ndarray of int
     """
 
     S: Array
     T: sp.csr_matrix
     retained: np.ndarray
     condensed: np.ndarray
-    X: Array  # (n_condensed, m): condensed DOFs per unit retained DOF, -K_cc^-1 K_cr
+    K_cr: sp.csc_matrix
+    factor: spla.SuperLU
+    perm: np.ndarray
+
+    def solve_cc(self, rhs: Array) -> Array:
+        """``K_cc^{-1} rhs`` for ``rhs`` of shape (n_condensed,) or (n_condensed, k)."""
+        out = np.empty_like(rhs)
+        out[self.perm] = self.factor.solve(np.ascontiguousarray(rhs[self.perm]))
+        return out
 
     def displacement(self, z_r: Array) -> Array:
-        """Nodal displacements ``(N, 3)`` of the whole membrane for retained values ``z_r``."""
+        """Nodal displacements ``(N, 3)`` of the whole membrane for retained values ``z_r``, eq. (7)."""
         z = np.zeros(self.T.shape[1])
         z[self.retained] = z_r
-        z[self.condensed] = self.X @ z_r
+        z[self.condensed] = -self.solve_cc(self.K_cr @ z_r)
         return (self.T @ z).reshape(-1, 3)
 
 
@@ -255,24 +334,68 @@ def generalised_map(
     return T, gen_of
 
 
+def _amd(pattern: sp.spmatrix) -> np.ndarray:
+    """Approximate-minimum-degree order of a symmetric pattern (qdldl's, on a graph Laplacian + I)."""
+    A = sp.csr_matrix(pattern, copy=True)
+    A.data[:] = -1.0
+    A.setdiag(0.0)
+    A.eliminate_zeros()
+    A = A + sp.diags(1.0 - np.asarray(A.sum(axis=1)).ravel())
+    return np.asarray(qdldl.Solver(sp.triu(A, format="csc"), upper=True).factors()[2], dtype=int)
+
+
+def _fill_reducing_order(
+    K: sp.spmatrix, T: sp.csr_matrix, condensed: np.ndarray, Kcc: sp.spmatrix
+) -> np.ndarray:
+    """Order of the condensed DOFs for the factorisation of ``K_cc``.
+
+    When every condensed DOF is a plain nodal DOF (ties and pins are retained or removed), the
+    order is the AMD order of the node graph with each node's DOFs kept together: exact zeros in
+    box elements (e.g. some u_x-u_y couplings) break the 3x3 blocks of the DOF graph, and AMD on
+    that broken pattern fills 1.5-4 times more.  Otherwise AMD on the pattern of ``K_cc`` itself.
+    """
+    Tc = sp.csc_matrix(T[:, condensed])
+    if not np.all(np.diff(Tc.indptr) == 1):
+        return _amd(Kcc)
+    dof = Tc.indices
+    n_nodes = K.shape[0] // 3
+    R = sp.kron(sp.identity(n_nodes, format="csr"), np.ones((1, 3)), format="csr")
+    Kn = R @ abs(sp.csr_matrix(K)) @ R.T
+    rank = np.empty(n_nodes, dtype=int)
+    rank[_amd(Kn)] = np.arange(n_nodes)
+    return np.lexsort((dof % 3, rank[dof // 3]))
+
+
 def condense(K: sp.spmatrix, T: sp.csr_matrix, retained: np.ndarray) -> Condensed:
-    """Schur complement of ``T' K T`` onto ``retained`` by one sparse LDL' factorisation, eqs. (6)-(8)."""
+    """Schur complement of ``T' K T`` onto ``retained`` by one sparse factorisation, eqs. (6)-(8).
+
+    ``K_cc`` is ordered by approximate minimum degree (qdldl's symbolic LDL' ordering: SuperLU's
+    own orderings fill a 3D mesh several times more), then factorised by SuperLU in that order
+    without pivoting (``K_cc`` is positive definite), whose solve takes all retained columns at
+    once (eq. (7)).
+    """
     Kg = sp.csc_matrix(T.T @ K @ T)
     n = Kg.shape[0]
     retained = np.asarray(retained, dtype=int)
     condensed = np.setdiff1d(np.arange(n), retained)
-    Kcc = Kg[condensed][:, condensed].tocsc()
-    Kcr = Kg[condensed][:, retained].toarray()
+    Kc = Kg[condensed]
+    Kcc = Kc[:, condensed].tocsc()
+    Kcr = Kc[:, retained].tocsc()
     Krr = Kg[retained][:, retained].toarray()
-    try:  # LDL' with an AMD ordering: far less fill on 3D meshes than SuperLU's orderings
-        ldl = qdldl.Solver(sp.triu(Kcc, format="csc"), upper=True)
+    try:
+        perm = _fill_reducing_order(K, T, condensed, Kcc)
+        opts = {"SymmetricMode": True}
+        factor = spla.splu(
+            Kcc[perm][:, perm].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options=opts
+        )
     except Exception as exc:  # singular: a rigid mode not removed by supports or pins
-        raise SolverFailure("qdldl", "singular membrane stiffness", detail=str(exc)) from exc
-    X = -np.column_stack([ldl.solve(Kcr[:, k]) for k in range(Kcr.shape[1])]).reshape(len(condensed), -1)
+        raise SolverFailure("superlu", "singular membrane stiffness", detail=str(exc)) from exc
+    cond = Condensed(np.zeros((0, 0)), sp.csr_matrix(T), retained, condensed, Kcr, factor, perm)
+    X = -cond.solve_cc(Kcr.toarray())
     if not np.all(np.isfinite(X)):
-        raise SolverFailure("splu", "non-finite condensation")
-    S = Krr + Kcr.T @ X
-    return Condensed(0.5 * (S + S.T), sp.csr_matrix(T), retained, condensed, X)
+        raise SolverFailure("superlu", "non-finite condensation")
+    S = Krr + (Kcr.T @ X)
+    return replace(cond, S=0.5 * (S + S.T))
 
 
 @dataclass(frozen=True)
