@@ -80,6 +80,9 @@ class SQPSettings:
         Largest exact overlap accepted after the rigid-body update, in L.
     max_iter : int
         Sequential QP iterations at one load level before giving up.
+    anderson_depth : int
+        Depth of the Anderson acceleration (eq. (6)); 0 is the plain fixed-point iteration, a
+        descent of the energy in the K metric (the landing of a snap, puncture.md sec. 4).
     """
 
     solver: str = "clarabel"
@@ -87,6 +90,7 @@ class SQPSettings:
     step_tol: float = 1e-8
     penetration_tol: float = 1e-9
     max_iter: int = 60
+    anderson_depth: int = 5
 
 
 @dataclass
@@ -272,7 +276,7 @@ def solve_equilibrium(
     q = np.array(q0, dtype=float, copy=True)
     build_s = solve_s = 0.0
     cs = previous
-    accel = Anderson()
+    accel = Anderson(settings.anderson_depth)
     rows: tuple[str, ...] | None = None
     dq = np.zeros_like(q)
     refresh: float | None = None
