@@ -267,16 +267,20 @@ def tie_rows(node_xy: Array, centroid: Array) -> Array:
 class Condensed:
     """The membrane condensed onto its retained generalised DOFs z_r, eqs. (6)-(8).
 
+    Generalised DOFs are retained (the QP's unknowns), held (fixed at zero, e.g. support DOFs
+    assumed closed; their reactions are checked and they can be released into the retained set)
+    or condensed (eliminated through the factorisation of ``K_cc``).
+
     Attributes
     ----------
     S : ndarray (m, m)
         Schur complement: the membrane energy is ``1/2 z_r' S z_r``.
     T : csr_matrix (3N, n_gen)
         Full nodal displacements from the generalised DOFs (ties and Dirichlet pins applied).
-    retained, condensed : ndarray of int
+    retained, held, condensed : ndarray of int
         Indices into the generalised DOFs.
-    K_cr : csc_matrix (n_condensed, m)
-        Coupling block of eq. (6).
+    K_g : csc_matrix (n_gen, n_gen)
+        ``T' K T``.
     factor : SuperLU
         The factorisation of ``K_cc`` (in the fill-reducing order ``perm``), kept for eq. (7).
     perm : ndarray of int
@@ -285,10 +289,16 @@ class Condensed:
     S: Array
     T: sp.csr_matrix
     retained: np.ndarray
+    held: np.ndarray
     condensed: np.ndarray
-    K_cr: sp.csc_matrix
+    K_g: sp.csc_matrix
     factor: spla.SuperLU
     perm: np.ndarray
+
+    @cached_property
+    def K_c(self) -> sp.csc_matrix:
+        """Rows of ``K_g`` of the condensed DOFs ``(n_condensed, n_gen)``."""
+        return sp.csc_matrix(sp.csr_matrix(self.K_g)[self.condensed])
 
     def solve_cc(self, rhs: Array) -> Array:
         """``K_cc^{-1} rhs`` for ``rhs`` of shape (n_condensed,) or (n_condensed, k)."""
@@ -296,12 +306,36 @@ class Condensed:
         out[self.perm] = self.factor.solve(np.ascontiguousarray(rhs[self.perm]))
         return out
 
-    def displacement(self, z_r: Array) -> Array:
-        """Nodal displacements ``(N, 3)`` of the whole membrane for retained values ``z_r``, eq. (7)."""
+    def generalised(self, z_r: Array) -> Array:
+        """All generalised DOFs for retained values ``z_r``: held at zero, condensed by eq. (7)."""
         z = np.zeros(self.T.shape[1])
         z[self.retained] = z_r
-        z[self.condensed] = -self.solve_cc(self.K_cr @ z_r)
-        return (self.T @ z).reshape(-1, 3)
+        z[self.condensed] = -self.solve_cc(self.K_c[:, self.retained] @ z_r)
+        return z
+
+    def displacement(self, z_r: Array) -> Array:
+        """Nodal displacements ``(N, 3)`` of the whole membrane for retained values ``z_r``, eq. (7)."""
+        return (self.T @ self.generalised(z_r)).reshape(-1, 3)
+
+    def reactions(self, z_r: Array) -> Array:
+        """Forces ``(len(held),)`` the held DOFs need to stay at zero: ``(K_g g)`` on them, eq. (8b)."""
+        return sp.csr_matrix(self.K_g)[self.held] @ self.generalised(z_r)
+
+    def released(self, dofs: np.ndarray) -> Condensed:
+        """The held ``dofs`` appended to the retained ones, ``S`` bordered by their columns (eq. (8c)).
+
+        One solve per new column with the kept factorisation; nothing is refactorised.
+        """
+        dofs = np.asarray(dofs, dtype=int)
+        if not np.all(np.isin(dofs, self.held)) or len(np.unique(dofs)) != len(dofs):
+            raise InvalidDesign("dofs", dofs.tolist(), "distinct held DOFs")
+        Xn = -self.solve_cc(self.K_c[:, dofs].toarray())
+        Kg = sp.csr_matrix(self.K_g)
+        S_rn = Kg[self.retained][:, dofs].toarray() + self.K_c[:, self.retained].T @ Xn
+        S_nn = Kg[dofs][:, dofs].toarray() + self.K_c[:, dofs].T @ Xn
+        S = np.block([[self.S, S_rn], [S_rn.T, 0.5 * (S_nn + S_nn.T)]])
+        held = self.held[~np.isin(self.held, dofs)]
+        return replace(self, S=S, retained=np.r_[self.retained, dofs], held=held)
 
 
 def generalised_map(
@@ -366,22 +400,24 @@ def _fill_reducing_order(
     return np.lexsort((dof % 3, rank[dof // 3]))
 
 
-def condense(K: sp.spmatrix, T: sp.csr_matrix, retained: np.ndarray) -> Condensed:
+def condense(
+    K: sp.spmatrix, T: sp.csr_matrix, retained: np.ndarray, held: np.ndarray | None = None
+) -> Condensed:
     """Schur complement of ``T' K T`` onto ``retained`` by one sparse factorisation, eqs. (6)-(8).
 
-    ``K_cc`` is ordered by approximate minimum degree (qdldl's symbolic LDL' ordering: SuperLU's
-    own orderings fill a 3D mesh several times more), then factorised by SuperLU in that order
-    without pivoting (``K_cc`` is positive definite), whose solve takes all retained columns at
-    once (eq. (7)).
+    ``held`` generalised DOFs are fixed at zero (neither retained nor condensed).  ``K_cc`` is
+    ordered by approximate minimum degree on the node graph (``_fill_reducing_order``), then
+    factorised by SuperLU in that order without pivoting (``K_cc`` is positive definite), whose
+    solve takes all retained columns at once (eq. (7)).
     """
     Kg = sp.csc_matrix(T.T @ K @ T)
     n = Kg.shape[0]
     retained = np.asarray(retained, dtype=int)
-    condensed = np.setdiff1d(np.arange(n), retained)
-    Kc = Kg[condensed]
-    Kcc = Kc[:, condensed].tocsc()
-    Kcr = Kc[:, retained].tocsc()
-    Krr = Kg[retained][:, retained].toarray()
+    held = np.zeros(0, dtype=int) if held is None else np.asarray(held, dtype=int)
+    if len(np.intersect1d(retained, held)) or len(np.unique(retained)) != len(retained):
+        raise InvalidDesign("retained", "repeated or held DOFs", "distinct DOFs, none of them held")
+    condensed = np.setdiff1d(np.arange(n), np.r_[retained, held])
+    Kcc = Kg[condensed][:, condensed].tocsc()
     try:
         perm = _fill_reducing_order(K, T, condensed, Kcc)
         opts = {"SymmetricMode": True}
@@ -390,12 +426,14 @@ def condense(K: sp.spmatrix, T: sp.csr_matrix, retained: np.ndarray) -> Condense
         )
     except Exception as exc:  # singular: a rigid mode not removed by supports or pins
         raise SolverFailure("superlu", "singular membrane stiffness", detail=str(exc)) from exc
-    cond = Condensed(np.zeros((0, 0)), sp.csr_matrix(T), retained, condensed, Kcr, factor, perm)
-    X = -cond.solve_cc(Kcr.toarray())
-    if not np.all(np.isfinite(X)):
+    empty = np.zeros(0, dtype=int)
+    cond = Condensed(
+        np.zeros((0, 0)), sp.csr_matrix(T), empty, np.r_[retained, held], condensed, Kg, factor, perm
+    )
+    cond = cond.released(retained)
+    if not np.all(np.isfinite(cond.S)):
         raise SolverFailure("superlu", "non-finite condensation")
-    S = Krr + (Kcr.T @ X)
-    return replace(cond, S=0.5 * (S + S.T))
+    return replace(cond, held=held)
 
 
 @dataclass(frozen=True)

@@ -6,9 +6,16 @@ import numpy as np
 import pytest
 
 from qpscale.errors import InvalidDesign
-from qpscale.experiments.flexure import FlexureSetup, run_flexure
+from qpscale.experiments.flexure import (
+    FlexureSetup,
+    build_model,
+    released_supports,
+    run_flexure,
+    run_model,
+    support_forces,
+)
 from qpscale.membrane import MembraneModel, tie_rows
-from qpscale.tiling import Design
+from qpscale.tiling import DESIGNS, Design
 
 COARSE = MembraneModel(h=1.0, nz=2)
 # Coarse but gap-graded: lines at every scale edge, the free strip is the gap d itself.
@@ -70,6 +77,46 @@ def test_bare_response_is_symmetric_about_the_mid_line():
     assert np.allclose(u[:, 1], -u[idx, 1], atol=1e-6 * np.abs(u).max())
 
 
+def test_removing_the_scales_recovers_the_bare_membrane():
+    # The square array's gap-graded mesh with every tie removed is the bare membrane on a finer, highly
+    # stretched mesh (elements down to 0.005 x 1 L). Its C_f* must lie in the bare membrane's in-plane
+    # refinement band at the same n_z, between the uniform h = 1 and h = 0.25 meshes (C_f* rises with
+    # in-plane refinement, membrane.md sec. 9): the stretched elements neither lock nor lose stiffness.
+    scaled = build_model(FlexureSetup(mode="scaled", membrane=GRADED, increments=1))
+    assert scaled.patch.n_scales == 25
+    on_scaled_mesh = run_flexure(FlexureSetup(mode="bare", membrane=GRADED, increments=1), mesh=scaled.mm)
+    coarse = run_flexure(FlexureSetup(mode="bare", membrane=COARSE, increments=1))
+    fine = run_flexure(FlexureSetup(mode="bare", membrane=MembraneModel(h=0.25, nz=2), increments=1))
+    assert on_scaled_mesh.n_scales == 0
+    assert coarse.Cf_star < on_scaled_mesh.Cf_star < fine.Cf_star
+
+
+def test_supports_are_unilateral_and_balance_the_plate():
+    # The bare membrane lifts off the outer half of each support strip. At the converged state: vertical
+    # equilibrium (support forces sum to the plate force, to the QP's 1e-9 KKT tolerance relative to F),
+    # no support pulls, and a support node that lifted carries no force (complementarity, 1e-9).
+    r = run_flexure(FlexureSetup(mode="bare", membrane=COARSE, increments=2))
+    model = r.extras["model"]
+    dofs, uz, force = support_forces(model, r.z_final)
+    assert force.sum() == pytest.approx(r.force[-1], rel=1e-6)
+    assert force.min() > -1e-9
+    lifted = uz > 1e-9
+    assert lifted.any() and (~lifted).any()
+    assert np.abs(force[lifted]).max() < 1e-9
+    assert np.all(uz > -1e-9)
+
+
+def test_held_supports_give_the_answer_of_all_supports_in_the_qp():
+    # Holding the supports closed and releasing the pulling ones (sec. 7) against every support DOF as
+    # a unilateral QP row from the start: the same curve (1e-7: both converge to steps of 1e-9 L).
+    setup = FlexureSetup(mode="isolated", membrane=COARSE, increments=2)
+    model = build_model(setup)
+    lazy = run_model(model)
+    full = run_model(released_supports(model, model.cond.held))
+    assert 0 < lazy.extras["released"] < len(model.cond.held)
+    assert np.allclose(lazy.force, full.force, rtol=1e-7, atol=0)
+
+
 def test_isolated_scale_moves_its_bonded_nodes_rigidly():
     r = run_flexure(FlexureSetup(mode="isolated", membrane=COARSE, increments=2))
     model = r.extras["model"]
@@ -95,6 +142,20 @@ def test_scaled_membrane_is_stiffer_than_the_isolated_scale(square_x):
     iso = run_flexure(FlexureSetup(mode="isolated", membrane=GRADED, increments=1))
     assert square_x.n_scales == 25 and square_x.max_penetration < 1e-9
     assert square_x.Cf_star < 0.5 * iso.Cf_star
+
+
+def test_scaled_response_is_symmetric_about_both_mid_lines(square_x):
+    # The 5x5 square array, supports and plate are symmetric about y = 0 (the plate's line) and x = 0.
+    # Mirroring y: (u_x, u_y, u_z, phi_x, phi_y) -> (u_x, -u_y, u_z, -phi_x, phi_y) (phi a pseudovector);
+    # mirroring x: (-u_x, u_y, u_z, phi_x, -phi_y). The plane formulation has no tie-breaking rule, so
+    # the converged state keeps the symmetry to the SQP's step tolerance (1e-9 L; 1e-6 of max |q|).
+    model = square_x.extras["model"]
+    q = square_x.z_final[: model.n_q].reshape(-1, 5)
+    c = model.patch.centroids
+    for flip, sign in (([1, -1], [1, -1, 1, -1, 1]), ([-1, 1], [-1, 1, 1, 1, -1])):
+        j = [int(np.argmin(np.linalg.norm(c - ci * np.array(flip), axis=1))) for ci in c]
+        assert np.allclose(c[j], c * np.array(flip), atol=1e-9)
+        assert np.allclose(q[j], q * np.array(sign), atol=1e-6 * np.abs(q).max())
 
 
 @pytest.mark.slow
@@ -178,3 +239,17 @@ def test_setup_validation():
     with pytest.raises(InvalidDesign, match="span"):
         FlexureSetup(span=12.0)
     FlexureSetup(design=Design(shape="hexagon"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("load_line", ["x", "y"])
+@pytest.mark.parametrize("shape,tiling", DESIGNS)
+def test_every_design_converges_and_is_stiffer_than_the_isolated_scale(shape, tiling, load_line):
+    # Each of the eight designs, both load lines, coarse gap-graded mesh: the curve converges with no
+    # overlap (1e-9 L) and the covered membrane is less compliant than the isolated scale.
+    design = Design(shape=shape, tiling=tiling)
+    r = run_flexure(FlexureSetup(design=design, load_line=load_line, membrane=GRADED, increments=2))
+    iso = run_flexure(FlexureSetup(design=design, mode="isolated", load_line=load_line, membrane=GRADED))
+    assert r.max_penetration <= 1e-9
+    assert np.all(np.diff(r.force) > 0)
+    assert r.Cf_star < iso.Cf_star

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -19,8 +20,8 @@ from shapely.geometry import Polygon, box
 from ..contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from ..errors import InvalidDesign, SolverFailure
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
-from ..increment import Anderson
-from ..membrane import MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
+from ..increment import PLANE_PROX, Anderson, _accelerated, _pinned_only
+from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
 from ..solvers import solve_qp
 from ..tiling import Design, Patch, build_patch
@@ -32,6 +33,8 @@ STEP_TOL = 1e-9  # L: largest change of a retained DOF (scale DOFs, support and 
 ACCURACY = "high"  # KKT tolerance 1e-9 of each QP
 MAX_ITER = 60
 ROW_MEMORY = 4  # linearisations whose contact rows stay in the QP (_merge_rows)
+RELEASE_TOL = 1e-9  # E_m L^2: a held support DOF whose reaction pulls harder is released (sec. 7)
+MAX_RELEASE_ROUNDS = 20
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,9 @@ class FlexureSetup:
         Plate positions on the curve.
     contact : bool
         Scale-scale contact rows (False: scales interact through the membrane only).
+    formulation : {"plane", "feature"}
+        Scale-scale contact by separating planes (default) or by clipped features
+        (formulations/contact.md sections 7 and 3-6; membrane.md sec. 8).
     grade : bool
         Mesh lines at the scales' axis-parallel edges, graded towards the gaps (False: uniform).
     solver : str
@@ -71,6 +77,7 @@ class FlexureSetup:
     max_deflection: float = 0.2
     increments: int = 5
     contact: bool = True
+    formulation: str = "plane"
     grade: bool = True
     solver: str = "clarabel"
 
@@ -79,6 +86,8 @@ class FlexureSetup:
             raise InvalidDesign("mode", self.mode, "{" + ", ".join(MODES) + "}")
         if self.load_line not in ("x", "y"):
             raise InvalidDesign("load_line", self.load_line, "{x, y}")
+        if self.formulation not in ("plane", "feature"):
+            raise InvalidDesign("formulation", self.formulation, "{plane, feature}")
         half = (self.membrane.width if self.load_line == "x" else self.membrane.length) / 2
         checks = [
             ("span", self.span, 0 < self.span / 2 + self.support_width / 2 < half),
@@ -204,19 +213,28 @@ class FlexureModel:
     setup: FlexureSetup
     mm: MembraneMesh
     patch: Patch | None
-    cond: object
+    cond: Condensed
     n_q: int  # 5 * number of scales (first block of the retained DOFs)
-    support_idx: np.ndarray  # positions in z_r of the support u_z
+    support_idx: np.ndarray  # positions in z_r of the released support u_z (unilateral rows)
     plate_idx: np.ndarray  # bare: positions in z_r of the plate-node u_z
     plate_points: list  # scaled: (scale, body point (3,)) material points under the plate
     condense_s: float
 
+    @cached_property
+    def S(self) -> sp.csc_matrix:
+        """The condensed stiffness, eq. (8), as the QP's CSC matrix (built once per curve)."""
+        return sp.csc_matrix(self.cond.S)
 
-def build_model(setup: FlexureSetup) -> FlexureModel:
-    """Mesh, tie, pin and condense the membrane once (formulations/membrane.md eqs. (5)-(9))."""
+
+def build_model(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> FlexureModel:
+    """Mesh, tie, pin and condense the membrane once (formulations/membrane.md eqs. (5)-(9)).
+
+    ``mesh`` replaces the mesh of section 2 (e.g. a scaled design's mesh for the bare membrane).
+    The support DOFs start held closed (``Condensed.held``); see ``_release_tensile``.
+    """
     t0 = time.perf_counter()
     patch = None if setup.mode == "bare" else kept_scales(setup)
-    mm = _mesh(setup, patch)
+    mm = _mesh(setup, patch) if mesh is None else mesh
     xyz = mm.nodes
     top, bottom = mm.face_nodes(True), mm.face_nodes(False)
     plate, supports = _strips(setup)
@@ -232,19 +250,50 @@ def build_model(setup: FlexureSetup) -> FlexureModel:
     sup_nodes = bottom[_in(supports[0], xyz[bottom, :2]) | _in(supports[1], xyz[bottom, :2])]
     n_q = 5 * len(ties)
     n_free = T.shape[1] - n_q
-    retained = [n_free + np.arange(n_q), gen_of[3 * sup_nodes + 2]]
     plate_nodes = top[_in(plate, xyz[top, :2])] if patch is None else np.zeros(0, int)
-    retained.append(gen_of[3 * plate_nodes + 2])
-    retained = np.concatenate(retained)
-    if (retained < 0).any():
-        raise InvalidDesign("mesh", "a support node is tied or pinned", "untied support nodes")
-    cond = condense(mm.K, T, retained)
-    ns = len(sup_nodes)
+    retained = np.r_[n_free + np.arange(n_q), gen_of[3 * plate_nodes + 2]]
+    held = gen_of[3 * sup_nodes + 2]
+    if (held < 0).any() or (retained < 0).any():
+        raise InvalidDesign("mesh", "a support or plate node is tied or pinned", "untied nodes")
+    cond = condense(mm.K, T, retained, held)
     points = _plate_points(patch, plate) if patch is not None else []
-    plate_idx = n_q + ns + np.arange(len(plate_nodes))
+    plate_idx = n_q + np.arange(len(plate_nodes))
     return FlexureModel(
-        setup, mm, patch, cond, n_q, n_q + np.arange(ns), plate_idx, points, time.perf_counter() - t0
+        setup, mm, patch, cond, n_q, np.zeros(0, int), plate_idx, points, time.perf_counter() - t0
     )
+
+
+def _release_tensile(model: FlexureModel, z: Array) -> tuple[FlexureModel, Array, int]:
+    """Support DOFs held closed whose reaction pulls (eq. (10b)) become unilateral QP rows.
+
+    Returns the model with those DOFs released (appended to the retained DOFs), ``z`` padded
+    with their current value 0, and how many were released.
+    """
+    if not len(model.cond.held):
+        return model, z, 0
+    r = model.cond.reactions(z)
+    pull = model.cond.held[r < -RELEASE_TOL]
+    if not len(pull):
+        return model, z, 0
+    return released_supports(model, pull), np.r_[z, np.zeros(len(pull))], len(pull)
+
+
+def released_supports(model: FlexureModel, dofs: np.ndarray) -> FlexureModel:
+    """``model`` with the held support DOFs ``dofs`` turned into retained DOFs with unilateral rows."""
+    idx = np.r_[model.support_idx, len(model.cond.retained) + np.arange(len(dofs))]
+    return replace(model, cond=model.cond.released(dofs), support_idx=idx)
+
+
+def support_forces(model: FlexureModel, z: Array) -> tuple[np.ndarray, Array, Array]:
+    """Every support DOF (generalised index), its u_z and the force the support puts on it, eq. (10b).
+
+    The force is ``(K_g g)`` at the DOF: the reaction of a held DOF, the row's multiplier for a
+    released one (they agree at a converged state).
+    """
+    cond = model.cond
+    dofs = np.r_[cond.held, cond.retained[model.support_idx]]
+    g = cond.generalised(z)
+    return dofs, g[dofs], sp.csr_matrix(cond.K_g)[dofs] @ g
 
 
 def _pins(xyz: Array, bottom: np.ndarray) -> np.ndarray:
@@ -297,25 +346,28 @@ def _plate_rows(model: FlexureModel, z: Array, z_plate: float) -> tuple[Array, A
 
 
 FEATURE = ContactSettings(formulation="feature")
+PLANE = ContactSettings(formulation="plane")
 
 
 def _contact_rows(
-    model: FlexureModel, z: Array, previous: ContactSet | None
-) -> tuple[Array, Array, ContactSet | None]:
-    """Scale-scale rows ``-J q <= g - J q_n`` from qpscale.contact, eq. (12), and their contact set.
+    model: FlexureModel, z: Array, previous: ContactSet | None, refresh: float | None = None
+) -> tuple[sp.csr_matrix, Array, ContactSet | None]:
+    """Scale-scale rows ``-J (z, theta) <= g - J_q q_n`` from qpscale.contact, eq. (12), and their set.
 
-    ``previous`` keeps each pair's separating axis sticky across linearisations (the feature
-    formulation: rows tied to two scales, no plane unknowns).
+    Columns: the retained DOFs ``z``, then the plane unknowns ``theta`` of the set (plane
+    formulation; none for the feature formulation).  ``previous`` carries the planes moved by the
+    last QP (plane) or each pair's sticky axis (feature).
     """
     n = len(z)
     if model.patch is None or model.patch.n_scales < 2 or not model.setup.contact:
-        return np.zeros((0, n)), np.zeros(0), None
+        return sp.csr_matrix((0, n)), np.zeros(0), None
     q = z[: model.n_q].reshape(-1, 5)
-    cs = detect_contacts(model.patch, q, FEATURE, previous=previous)
-    J = sp.csr_matrix(gap_jacobian(cs, model.patch, q)).toarray()
-    G = np.zeros((J.shape[0], n))
-    G[:, : model.n_q] = -J
-    return G, np.asarray(cs.gap) - J @ z[: model.n_q], cs
+    settings = PLANE if model.setup.formulation == "plane" else FEATURE
+    cs = detect_contacts(model.patch, q, settings, previous=previous, refresh=refresh)
+    J = sp.csr_matrix(gap_jacobian(cs, model.patch, q))
+    Jq = J[:, : model.n_q]
+    G = sp.hstack([-Jq, sp.csr_matrix((cs.m, n - model.n_q)), -J[:, model.n_q :]], format="csr")
+    return G, np.asarray(cs.gap) - Jq @ z[: model.n_q], cs
 
 
 @dataclass(frozen=True)
@@ -355,8 +407,8 @@ def _exact_penetration(model: FlexureModel, z: Array, z_plate: float) -> float:
 
 
 def _merge_rows(
-    model: FlexureModel, history: list[tuple[Array, Array, ContactSet | None]], z: Array
-) -> tuple[Array, Array, ContactSet | None]:
+    model: FlexureModel, history: list[tuple[sp.csr_matrix, Array, ContactSet | None]], z: Array
+) -> tuple[sp.csr_matrix, Array, ContactSet | None]:
     """The current contact rows plus, for contact points that just left the set, their last rows.
 
     Near-coincident faces make the clipped point set flicker between linearisations (a cycle of
@@ -376,15 +428,13 @@ def _merge_rows(
         if keep.any():
             seen.update(k for k, kp in zip(keys, keep) if kp)
             moved = _relinearise(_take(ck, keep), model.patch, cs)
-            J = sp.csr_matrix(gap_jacobian(moved, model.patch, cs.q)).toarray()
-            Gk = np.zeros((moved.m, len(z)))
-            Gk[:, : model.n_q] = -J
-            Gs.append(Gk)
+            J = sp.csr_matrix(gap_jacobian(moved, model.patch, cs.q))
+            Gs.append(sp.hstack([-J, sp.csr_matrix((moved.m, len(z) - model.n_q))], format="csr"))
             hs.append(moved.gap - J @ z[: model.n_q])
             parts.append(moved)
     if len(parts) == 1:
         return G, h, cs
-    return np.vstack(Gs), np.concatenate(hs), _concat(parts)
+    return sp.vstack(Gs, format="csr"), np.concatenate(hs), _concat(parts)
 
 
 def _relinearise(ck: ContactSet, patch: Patch, cs: ContactSet) -> ContactSet:
@@ -400,6 +450,14 @@ def _relinearise(ck: ContactSet, patch: Patch, cs: ContactSet) -> ContactSet:
     n = np.einsum("mij,mj->mi", Ra, np.einsum("mji,mj->mi", Ra_old, ck.normal))
     gap = np.einsum("mi,mi->m", n, xb - xa)
     return replace(ck, xa=xa, xb=xb, normal=n, gap=gap, q=cs.q, centre=cs.centre)
+
+
+def _set_keys(cs: ContactSet | None, formulation: str) -> frozenset:
+    """What identifies a row set for the Anderson reset: plane rows by label (their foot points move
+    with the plane), feature rows by label and point (``_row_keys``)."""
+    if cs is None:
+        return frozenset()
+    return frozenset(cs.labels) if formulation == "plane" else frozenset(_row_keys(cs))
 
 
 def _rotations(q: Array) -> Array:
@@ -429,55 +487,108 @@ def _concat(parts: list[ContactSet]) -> ContactSet:
 def _solve_level(
     model: FlexureModel, z: Array, w: float, inc: int, previous: ContactSet | None
 ) -> FlexureState:
-    """Sequential QP at one plate position, eq. (13), Anderson-accelerated while the rows are unchanged."""
+    """Sequential QP at one plate position, eq. (13), Anderson-accelerated while the rows are unchanged.
+
+    Plane formulation: the planes' unknowns follow ``z`` with the proximal weight ``PLANE_PROX``,
+    unpinned planes are zeroed, and Anderson acts on the DOFs and planes jointly (as
+    ``qpscale.increment.solve_equilibrium``).  Feature formulation: rows of the last
+    ``ROW_MEMORY`` linearisations are merged (``_merge_rows``).
+    """
     setup = model.setup
     z_plate = setup.membrane.height + (setup.design.thickness if model.patch is not None else 0.0) - w
-    P = sp.csc_matrix(model.cond.S)
-    ns = len(model.support_idx)
-    Gs = np.zeros((ns, len(z)))
-    Gs[np.arange(ns), model.support_idx] = -1.0
+    n, ns = len(z), len(model.support_idx)
+    Gs = sp.csr_matrix((-np.ones(ns), (np.arange(ns), model.support_idx)), shape=(ns, n))
     cs, accel, rows, step = previous, Anderson(), None, np.zeros(0)
-    history: list[tuple[Array, Array, ContactSet | None]] = []
+    refresh: float | None = None
+    history: list[tuple[sp.csr_matrix, Array, ContactSet | None]] = []
     for it in range(1, MAX_ITER + 1):
         Gp, hp, _ = _plate_rows(model, z, z_plate)
-        Gc, hc, cs = _contact_rows(model, z, cs)
-        history = [*history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
-        Gc, hc, merged = _merge_rows(model, history, z)
-        G = sp.csc_matrix(np.vstack([Gp, Gs, Gc]))
-        qp = IncrementQP(P, np.zeros(len(z)), G, np.r_[hp, np.zeros(ns), hc])
-        try:
-            res = solve_qp(qp, solver=setup.solver, accuracy=ACCURACY)
-        except SolverFailure as exc:
-            raise SolverFailure(exc.solver, exc.status, inc, exc.detail) from exc
-        step = res.x - z
+        Gc, hc, cs = _contact_rows(model, z, cs, refresh)
+        refresh, merged = None, cs
+        if setup.formulation == "feature":
+            history = [*history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
+            Gc, hc, merged = _merge_rows(model, history, z)
+        res = _solve_qp(model, Gp, hp, Gs, Gc, hc, inc)
+        x, lam = res.x[:n], np.asarray(res.z[len(hp) + ns :])
+        if cs is not None and cs.planes is not None and cs.planes.count:
+            theta = _pinned_only(res.x[n:], cs, lam)
+            cs = merged = replace(cs, plane_memory=cs.planes.advanced(theta))
+        step = x - z
         if np.max(np.abs(step)) <= STEP_TOL:
-            z = res.x
+            z = x
             pen = _exact_penetration(model, z, z_plate)
             if pen <= PENETRATION_TOL:
-                lam = np.asarray(res.z[len(hp) + ns :])
                 return FlexureState(w, float(np.sum(res.z[: len(hp)])), z, merged, lam, it, pen)
+            refresh = PENETRATION_TOL  # plane formulation: overlapping pairs restart from their best axis
             continue
-        labels = frozenset(_row_keys(merged)) if merged is not None else frozenset()
+        labels = _set_keys(merged, setup.formulation)
         if labels != rows:
             accel.reset()
             rows = labels
-        z = accel.step(z, step)
+        z, cs = _accelerated(accel, z, step, cs)
     detail = f"last |dz| = {np.max(np.abs(step)):.3g} after {MAX_ITER} iterations"
     raise SolverFailure(setup.solver, "sequential QP did not converge", increment=inc, detail=detail)
 
 
-def run_flexure(setup: FlexureSetup) -> FlexureResult:
-    """The force-deflection curve of three-point bending and C_f* (formulations/membrane.md eq. (14))."""
+def _solve_qp(
+    model: FlexureModel,
+    Gp: Array,
+    hp: Array,
+    Gs: sp.csr_matrix,
+    Gc: sp.csr_matrix,
+    hc: Array,
+    inc: int,
+):
+    """QP (13) over ``(z, theta)``: plate, support and contact rows; ``PLANE_PROX`` on the planes."""
+    n = Gs.shape[1]
+    extra = Gc.shape[1] - n
+    P = sp.block_diag([model.S, PLANE_PROX * sp.identity(extra)], format="csc") if extra else model.S
+    pad = sp.csr_matrix((Gp.shape[0] + Gs.shape[0], extra))
+    G = sp.vstack([sp.hstack([sp.vstack([sp.csr_matrix(Gp), Gs]), pad]), Gc], format="csc")
+    qp = IncrementQP(P, np.zeros(n + extra), G, np.r_[hp, np.zeros(Gs.shape[0]), hc])
+    try:
+        return solve_qp(qp, solver=model.setup.solver, accuracy=ACCURACY)
+    except SolverFailure as exc:
+        raise SolverFailure(exc.solver, exc.status, inc, exc.detail) from exc
+
+
+def run_flexure(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> FlexureResult:
+    """The force-deflection curve of three-point bending and C_f* (formulations/membrane.md eq. (14)).
+
+    ``mesh`` replaces the mesh of section 2 (``build_model``).
+    """
     t0 = time.perf_counter()
-    model = build_model(setup)
+    return run_model(build_model(setup, mesh), t0)
+
+
+def run_model(model: FlexureModel, t0: float | None = None) -> FlexureResult:
+    """The curve of a built model (``t0``: when the wall clock of ``FlexureResult`` started).
+
+    At each plate position the sequential QP is solved with the support DOFs that are still held
+    closed; if a held DOF's reaction pulls, it is released into the QP as a unilateral row and
+    the position is solved again (sec. 7), so the accepted state satisfies every support's
+    complementarity.
+    """
+    t0 = time.perf_counter() if t0 is None else t0
+    setup = model.setup
     z = np.zeros(len(model.cond.retained))
     ws = np.linspace(0.0, setup.max_deflection, setup.increments + 1)
     states: list[FlexureState] = []
     cs = None
     for inc, w in enumerate(ws[1:], start=1):
-        state = _solve_level(model, z, float(w), inc, cs)
-        states.append(state)
-        z, cs = state.z, state.contacts
+        its = 0
+        for _ in range(MAX_RELEASE_ROUNDS):
+            state = _solve_level(model, z, float(w), inc, cs)
+            its += state.iterations
+            model, z, released = _release_tensile(model, state.z)
+            cs = state.contacts
+            if not released:
+                break
+        else:
+            raise SolverFailure(setup.solver, "support release did not settle", increment=inc)
+        states.append(replace(state, iterations=its))
+    m = len(model.cond.retained)  # earlier states held the later-released DOFs at 0
+    states = [replace(st, z=np.r_[st.z, np.zeros(m - len(st.z))]) for st in states]
     F = np.r_[0.0, [s.force for s in states]]
     iters = sum(s.iterations for s in states)
     pen = max(s.penetration for s in states)
@@ -501,5 +612,5 @@ def run_flexure(setup: FlexureSetup) -> FlexureResult:
         wall,
         model.condense_s,
         z,
-        {"model": model, "states": states},
+        {"model": model, "states": states, "released": len(model.support_idx)},
     )
