@@ -40,9 +40,10 @@ def _qp_path():
 
 
 def _level(k_pen: float, **kw):
-    """Penalty equilibrium at the QP's 6th load level, started from the QP state."""
+    """Penalty equilibrium at the QP's load level nearest delta = 0.28 L (about half way to failure,
+    contact set settled; the measured constants below are at this level), from the QP state."""
     _, patch, K, res = _qp_path()
-    st = res.states[5]
+    st = min(res.states, key=lambda s: abs(s.delta - 0.28))
     eq = solve_equilibrium_penalty(
         patch,
         K,

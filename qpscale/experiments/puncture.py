@@ -164,13 +164,26 @@ def _load_point(patch: Patch, xy: tuple[float, float] | np.ndarray) -> LoadPoint
 class _Unstable(Exception):
     """A state of a symmetry-constrained path failed the second-variation test."""
 
-    def __init__(self, before: list[Equilibrium], state: Equilibrium, stability: Stability) -> None:
+    def __init__(
+        self, before: list[Equilibrium], state: Equilibrium, stability: Stability, step: float
+    ) -> None:
         super().__init__("symmetric path lost stability")
-        self.before, self.state, self.stability = before, state, stability
+        self.before, self.state, self.stability, self.step = before, state, stability, step
 
 
 # Size of the push along an unstable mode before the path is continued on the branch, in L.
 BRANCH_PUSH = 1e-4
+# A step releasing more than this fraction of its work is bisected as a possible jump between
+# equilibria, and a jump surviving down to SNAP_RESOLUTION * delta is a snap (sec. 2).
+SNAP_WORK = 1e-3
+# Smallest eigenvalue of the second variation (relative to K's largest diagonal) still counted as
+# stable: the finite-difference Hessian is accurate to ~1e-9, and a pitchfork's eigenvalue falls
+# through zero at a slope of order 1e-3 per L of depth, so the branch point moves by ~1e-3 L.
+STABILITY_TOL = 1e-6
+# Iterations allowed to the landing of a jump: the plain iteration leaves an unstable state at the
+# rate of its negative eigenvalue, slowly near the branch point.
+LANDING_MAX_ITER = 3000
+SNAP_RESOLUTION = 1e-7
 
 
 class _Path:
@@ -195,8 +208,14 @@ class _Path:
         self.solves = 0
         self.events: list[dict] = []
         self.fixed, self.check = fixed, check
+        # The energy balance that locates jumps holds for exact frictionless contact only (the
+        # feature rows' sticky axis and the penalty dissipate ~1e-3 of the work).
+        self.conservative = _checkable(setup)
+        self.smooth_from = 0  # first state after the last jump (the curvature cap's window)
 
-    def solve(self, start: Equilibrium, delta: float, index: int) -> Equilibrium:
+    def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> Equilibrium:
+        """The equilibrium at depth ``delta`` from ``start``; ``descent``: by the plain fixed-point
+        iteration, an energy descent in the K metric (the landing of a jump, sec. 4)."""
         self.solves += 1
         if self.setup.sqp.solver == "penalty":
             from ..penalty import PenaltySettings, solve_equilibrium_penalty
@@ -220,7 +239,9 @@ class _Path:
             self.load,
             delta,
             self.contact,  # type: ignore[arg-type]
-            self.setup.sqp,
+            replace(self.setup.sqp, anderson_depth=0, max_iter=LANDING_MAX_ITER)
+            if descent
+            else self.setup.sqp,
             increment=index,
             previous=start.contacts,
             fixed=self.fixed,
@@ -232,18 +253,7 @@ class _Path:
         return 0.5 * float(x @ (self.K @ x))  # type: ignore[operator]
 
     def stability(self, eq: Equilibrium) -> Stability:
-        return second_variation(self.patch, self.K, eq, self.load)
-
-    def checked(self, states: list[Equilibrium], eq: Equilibrium) -> Equilibrium:
-        """``eq`` if it is stable; else raise (symmetric path) or continue on the lower branch."""
-        if not self.check:
-            return eq
-        sv = self.stability(eq)
-        if sv.stable:
-            return eq
-        if self.fixed is not None:
-            raise _Unstable(states, eq, sv)
-        return self.branch_off(eq, sv, sides=(1.0, -1.0))
+        return second_variation(self.patch, self.K, eq, self.load, tol=STABILITY_TOL)
 
     def branch_off(self, eq: Equilibrium, sv: Stability, sides: tuple[float, ...]) -> Equilibrium:
         """Push ``eq`` along the unstable mode (each side given), re-solve at the same depth and
@@ -255,7 +265,7 @@ class _Path:
                 eq.q + side * BRANCH_PUSH * sv.mode, eq.delta, eq.F, eq.contacts, eq.lam, 0, 0.0
             )
             try:
-                moved = self.solve(start, eq.delta, -1)
+                moved = self.solve(start, eq.delta, -1, descent=True)
             except SolverFailure:
                 continue
             e = self.energy(moved)
@@ -271,20 +281,13 @@ class _Path:
         )
         return best[1] if best else eq
 
-    def bisect_branch(
-        self, lo: Equilibrium, hi: Equilibrium, sv: Stability, steps: int = 5
-    ) -> tuple[Equilibrium, Equilibrium, Stability]:
-        """Narrow the depth where a symmetric path loses stability, from the last stable state
-        ``lo`` and the first unstable one ``hi`` (test result ``sv``): the narrowed pair and the
-        test result of its unstable end."""
-        for _ in range(steps):
-            mid = self.solve(lo, 0.5 * (lo.delta + hi.delta), -1)
-            test = self.stability(mid)
-            if test.stable:
-                lo = mid
-            else:
-                hi, sv = mid, test
-        return lo, hi, sv
+    def breaks_symmetry(self, sv: Stability) -> bool:
+        """On a symmetric path: the unstable mode is mostly antisymmetric (a bifurcation off the
+        branch) rather than symmetric (a fold of the branch itself, crossed by a snap)."""
+        if self.fixed is None:
+            return False
+        mode = sv.mode.ravel()
+        return bool(np.linalg.norm(self.fixed @ mode) ** 2 > 0.5 * float(mode @ mode))
 
     def tilt_of(self, eq: Equilibrium) -> float:
         return tilt(eq.q[self.load.scale, 3:5])
@@ -331,41 +334,111 @@ class _Path:
             penetration=0.0,
         )
 
+    def released(self, a: Equilibrium, b: Equilibrium) -> float:
+        """Energy released between two states: work of the load (trapezoidal) minus the stored
+        energy's change.  On a continuous path it is the quadrature error, O(h^3) (O(h^2) at a
+        contact closing); a jump to another equilibrium releases a finite amount (sec. 2)."""
+        return 0.5 * (a.F + b.F) * (b.delta - a.delta) - (self.energy(b) - self.energy(a))
+
+    def snapped(self, a: Equilibrium, b: Equilibrium) -> bool:
+        """The step released more than ``SNAP_WORK`` of its work.  Relative to the work, the
+        quadrature error falls with the step (h^2 smooth, h at a kink) while a jump's release
+        grows as 1/h: bisection tells them apart."""
+        work = 0.5 * (a.F + b.F) * (b.delta - a.delta)
+        return self.released(a, b) > SNAP_WORK * abs(work)
+
     def run(self, states: list[Equilibrium] | None = None, step: float | None = None) -> list[Equilibrium]:
-        """Step the load until the tilt reaches phi_c; continue from ``states`` if given."""
+        """Step the load until the tilt reaches phi_c; continue from ``states`` if given.
+
+        A step that releases energy, or ends in a state failing the stability test, is bisected
+        (``ceiling``: the depth of the last such step) until the event is located within
+        ``SNAP_RESOLUTION``; the path then leaves its branch (the jump's landing state, or the
+        unstable state pushed along its mode), and a landing past phi_c is the failure (sec. 3-4).
+        On a symmetric path (``fixed``) a located instability raises ``_Unstable`` instead.
+        """
         states = list(states) if states else [self.origin()]
         step = step if step is not None else self.first_step(states[0])
         min_step, max_step = step * 1e-4, step * 100
+        ceiling, resume, retest = np.inf, step, False
         while len(states) <= self.setup.max_increments:
             last = states[-1]
+            if ceiling < np.inf:
+                step = ceiling - last.delta if retest else 0.5 * (ceiling - last.delta)
             try:
                 eq = self.solve(_predict(states, last.delta + step), last.delta + step, len(states))
             except SolverFailure:
-                step /= 2
-                if step < min_step:
+                if step < 2.0 * min_step:
                     raise
+                if ceiling < np.inf:
+                    ceiling, retest = last.delta + step, False
+                else:
+                    step /= 2
                 continue
+            sv = self.stability(eq) if self.check else None
+            unstable = sv is not None and not sv.stable
+            if unstable or (self.conservative and self.snapped(last, eq)):
+                if step > SNAP_RESOLUTION * eq.delta:
+                    if ceiling == np.inf:
+                        resume = step
+                    ceiling, retest = eq.delta, False
+                    continue
+                if unstable:
+                    assert sv is not None
+                    if self.breaks_symmetry(sv):
+                        raise _Unstable(states, eq, sv, resume)
+                    eq = self.branch_off(eq, sv, sides=(1.0, -1.0))
+                else:
+                    eq = self.solve(last, eq.delta, len(states), descent=True)
+                if self.left_branch(last, eq):
+                    return states
+                ceiling, step, self.smooth_from = np.inf, resume, len(states)
+            elif ceiling < np.inf:
+                # Below the ceiling the path is continuous; retest the rest of the bracket.
+                if eq.delta >= ceiling:
+                    ceiling, step = np.inf, resume
+                retest = True
             if self.tilt_of(eq) >= self.phi_c:
                 final = self.locate_failure(last, eq, len(states))
-                if self.fixed is not None and self.check:
-                    sv = self.stability(final)
-                    if not sv.stable:
-                        raise _Unstable(states, final, sv)
                 self.events.append(
-                    {"kind": "failure", "delta": final.delta, "tilt_deg": self.setup.phi_c_deg}
+                    {"kind": "failure", "by": "tilt", "delta": final.delta, "tilt_deg": self.setup.phi_c_deg}
                 )
                 states.append(final)
                 return states
-            eq = self.checked(states, eq)
             self._record_contact_change(last, eq)
             states.append(eq)
-            step = min(max_step, step * _growth(eq.iterations), self._remaining(states))
+            if ceiling == np.inf:
+                cap = _curvature_cap(states[self.smooth_from :])
+                step = min(max_step, step * _growth(eq.iterations), self._remaining(states), cap)
         raise SolverFailure(
             self.setup.sqp.solver,
             "failure tilt not reached",
             len(states),
             f"tilt {np.rad2deg(self.tilt_of(states[-1])):.3f} deg after {len(states)} increments",
         )
+
+    def left_branch(self, last: Equilibrium, landing: Equilibrium) -> bool:
+        """Record a located jump from ``last`` to ``landing``; True if it is the failure: the
+        tilt passes phi_c within the jump, and F_c is the force carried just before it."""
+        jump = {
+            "kind": "snap",
+            "delta_between": [last.delta, landing.delta],
+            "energy_released": self.released(last, landing),
+            "tilt_deg_between": [float(np.rad2deg(self.tilt_of(s))) for s in (last, landing)],
+            "F_between": [last.F, landing.F],
+        }
+        self.events.append(jump)
+        if self.tilt_of(landing) < self.phi_c:
+            return False
+        self.events.append(
+            {
+                "kind": "failure",
+                "by": "snap",
+                "delta": last.delta,
+                "tilt_deg": jump["tilt_deg_between"][0],
+                "tilt_deg_after": jump["tilt_deg_between"][1],
+            }
+        )
+        return True
 
     def _remaining(self, states: list[Equilibrium]) -> float:
         """Largest step that keeps about ``increments`` states up to the predicted failure depth."""
@@ -383,6 +456,23 @@ class _Path:
             self.events.append(
                 {"kind": "contact", "delta_between": [before.delta, after.delta], "pairs": sorted(changed)}
             )
+
+
+def _curvature_cap(states: list[Equilibrium]) -> float:
+    """Largest step whose trapezoidal work error, h^3 |F''| / 12 from the last three states,
+    stays below half the release ``snapped`` flags (SNAP_WORK F h): a jump to another
+    equilibrium is then never hidden by the quadrature error (formulations/puncture.md sec. 2)."""
+    if len(states) < 3:
+        return np.inf
+    a, b, c = states[-3:]
+    if not a.delta < b.delta < c.delta:
+        return np.inf
+    curvature = (
+        2.0 * ((c.F - b.F) / (c.delta - b.delta) - (b.F - a.F) / (b.delta - a.delta)) / (c.delta - a.delta)
+    )
+    if curvature == 0.0:
+        return np.inf
+    return float(np.sqrt(6.0 * SNAP_WORK * abs(c.F) / abs(curvature)))
 
 
 def _growth(iterations: int) -> float:
@@ -450,7 +540,7 @@ def _symmetric_point(
     setup: PunctureSetup, patch: Patch, K: object, load: LoadPoint, xy: np.ndarray, mirror: tuple
 ) -> tuple[list[Equilibrium], list, int, dict]:
     """A load point on a mirror line: the symmetric branch, held by constraints, until a state
-    fails the second-variation test; then the branch point is bisected and the path continues,
+    fails the second-variation test (located by the path's bisection); the path then continues,
     unconstrained, from the state pushed along the unstable mode to a fixed side."""
     M, perm = mirror
     sym = _Path(setup, patch, K, load, fixed=antisymmetric_rows(patch.n_scales, M, perm), check=True)
@@ -462,14 +552,13 @@ def _symmetric_point(
     except _Unstable as exc:
         lost = exc
     lo, hi, sv = lost.before[-1], lost.state, lost.stability
-    if lo.delta > 0.0:
-        lo, hi, sv = sym.bisect_branch(lo, hi, sv)
     free = _Path(setup, patch, K, load, check=True)
     sv = replace(sv, mode=sv.mode * _side(sv.mode[load.scale], M))
     on_branch = free.branch_off(hi, sv, sides=(1.0,))
-    before = [s for s in lost.before if s.delta < lo.delta] + [lo]
-    states = free.run(before + [on_branch], step=max(hi.delta - lo.delta, 1e-3 * hi.delta))
-    events = [e for e in sym.events if e.get("delta", 0.0) <= lo.delta] + free.events
+    states = list(lost.before)
+    if not free.left_branch(lo, on_branch):
+        free.smooth_from = len(states)
+        states = free.run(states + [on_branch], step=lost.step)
     info.update(
         {
             "branched": True,
@@ -479,7 +568,7 @@ def _symmetric_point(
             "asymmetry_at_failure": _asymmetry(states[-1].q, M, perm),
         }
     )
-    return states, events, sym.solves + free.solves, info
+    return states, sym.events + free.events, sym.solves + free.solves, info
 
 
 def _side(mode: np.ndarray, M: np.ndarray) -> float:
