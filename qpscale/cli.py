@@ -310,6 +310,9 @@ def flexure(
     nu_m: float = typer.Option(0.5, "--nu-m", help="Poisson's ratio of the membrane, [0, 0.5]."),
     mesh_h: float = typer.Option(0.5, "--mesh-h", help="In-plane element size, in L."),
     solver: str = typer.Option("clarabel", "--solver", help="clarabel, osqp, cvxpy or qpsolvers:<name>."),
+    formulation: str = typer.Option(
+        "plane", "--formulation", help="Scale-scale contact: plane (separating planes) or feature."
+    ),
     vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
     as_json: bool = JsonOpt,
 ) -> None:
@@ -328,6 +331,7 @@ def flexure(
         load_line=load_line,
         membrane=MembraneModel(nu=nu_m, h=mesh_h, nz=nz),
         solver=solver,
+        formulation=formulation,
     )
     result = run_flexure(setup)
     payload = {
@@ -340,6 +344,8 @@ def flexure(
         "n_retained": result.n_retained,
         "sqp_iterations": result.sqp_iterations,
         "max_penetration": result.max_penetration,
+        "released_supports": result.extras["released"],
+        "formulation": setup.formulation,
     }
     if vtk is not None:
         from .export_vtk_flexure import write_flexure_series

@@ -1,9 +1,10 @@
 """Three-point bending of a scaled membrane: supports, plate, bonded scales, contact, curve, C_f*.
 
-Implements formulations/membrane.md sections 6-8: the retained DOFs (eq. (9)), the unilateral
-supports and plate (eqs. (10)-(11)), scale-scale contact from ``qpscale.contact`` (eq. (12)),
-the sequential QP at each plate position (eq. (13)) and the compliance read-out (eq. (14)).
-The membrane is condensed once (qpscale.membrane); every QP has only the retained DOFs.
+Implements formulations/membrane.md sections 6-8: the retained and held DOFs (eq. (9)), the
+unilateral supports held closed until their reaction pulls (eqs. (10), (10b), (8c)), the plate
+(eq. (11)), scale-scale contact by separating planes from ``qpscale.contact`` (eq. (12)), the
+sequential QP at each plate position (eq. (13)) and the compliance read-out (eq. (14)).  The
+membrane is condensed once (qpscale.membrane); every QP has only the retained DOFs and the planes.
 """
 
 from __future__ import annotations
@@ -88,6 +89,9 @@ class FlexureSetup:
             raise InvalidDesign("load_line", self.load_line, "{x, y}")
         if self.formulation not in ("plane", "feature"):
             raise InvalidDesign("formulation", self.formulation, "{plane, feature}")
+        if self.solver == "osqp" and self.formulation == "plane":
+            # OSQP cannot polish the plane formulation's dependent rows (contact.md sec. 7).
+            object.__setattr__(self, "formulation", "feature")
         half = (self.membrane.width if self.load_line == "x" else self.membrane.length) / 2
         checks = [
             ("span", self.span, 0 < self.span / 2 + self.support_width / 2 < half),
