@@ -91,38 +91,46 @@ class _Lifted:
         self.size = 5 * self.n + 3 * len(keys)
         self.z0 = np.r_[q.ravel(), np.zeros(3 * len(keys))]
 
-    def jacobian(self, z: Array) -> Array:
-        """Gradients (m, size) of the active gaps at z, eqs. (1)-(2)."""
+    def jacobian(self, z: Array, rows: Array | None = None) -> Array:
+        """Gradients (m, size) of the active gaps at z, eqs. (1)-(2); ``rows`` picks a subset."""
+        k = np.arange(len(self.rows)) if rows is None else rows
         q = z[: 5 * self.n].reshape(self.n, 5)
         th = z[5 * self.n :].reshape(-1, 3)
-        R, T = rotation_matrices(q[:, 3:5]), tangent_operators(q[:, 3:5])
-        c = self.ref + q[:, :3]
-        s = self.scale
-        x = c[s] + np.einsum("mij,mj->mi", R[s], self.X)
-        v = self.n0 + np.einsum("pij,pj->pi", self.T0, th[:, :2])
+        s, j, sigma = self.scale[k], self.plane[k], self.sigma[k]
+        R, T = rotation_matrices(q[s, 3:5]), tangent_operators(q[s, 3:5])
+        c = self.ref[s] + q[s, :3]
+        x = c + np.einsum("mij,mj->mi", R, self.X[k])
+        v = self.n0[j] + np.einsum("mij,mj->mi", self.T0[j], th[j, :2])
         length = np.linalg.norm(v, axis=1)
-        nrm = v / length[:, None]
-        j = self.plane
-        n = nrm[j]
-        out = np.zeros((len(self.rows), self.size))
+        n = v / length[:, None]
+        out = np.zeros((len(k), self.size))
         cols = 5 * s[:, None] + np.arange(5)
-        dof = np.hstack([n, np.einsum("mji,mj->mi", T[s], np.cross(x - c[s], n))])
-        np.put_along_axis(out, cols, self.sigma[:, None] * dof, axis=1)
+        dof = np.hstack([n, np.einsum("mji,mj->mi", T, np.cross(x - c, n))])
+        np.put_along_axis(out, cols, sigma[:, None] * dof, axis=1)
         p = self.p0[j] + th[j, 2:3] * self.n0[j]
         proj = np.eye(3)[None] - np.einsum("mi,mj->mij", n, n)
-        dn = np.einsum("mij,mjk->mik", proj, self.T0[j]) / length[j][:, None, None]
+        dn = np.einsum("mij,mjk->mik", proj, self.T0[j]) / length[:, None, None]
         dt = np.einsum("mk,mki->mi", x - p, dn)
         pc = 5 * self.n + 3 * j[:, None] + np.arange(3)
         extra = np.hstack([dt, -np.einsum("mk,mk->m", n, self.n0[j])[:, None]])
-        np.put_along_axis(out, pc, self.sigma[:, None] * extra, axis=1)
+        np.put_along_axis(out, pc, sigma[:, None] * extra, axis=1)
         return out
 
-    def force_gradient(self, z: Array) -> Array:
-        """sum_k lam_k grad g_k - F grad w at z: the constraint part of the Lagrangian's gradient."""
-        q = z[: 5 * self.n].reshape(self.n, 5)
-        grad = self.lam @ self.jacobian(z)
-        grad[: 5 * self.n] -= self.F * self.load.gradient(q)
+    def force_gradient(self, z: Array, rows: Array | None = None, load: bool = True) -> Array:
+        """sum_k lam_k grad g_k - F grad w at z: the constraint part of the Lagrangian's gradient
+        (only the rows ``rows`` of the contact sum, and the load term if ``load``)."""
+        k = np.arange(len(self.rows)) if rows is None else rows
+        grad = self.lam[k] @ self.jacobian(z, k) if len(k) else np.zeros(self.size)
+        if load:
+            grad[: 5 * self.n] -= self.F * self.load.gradient(z[: 5 * self.n].reshape(self.n, 5))
         return grad
+
+    def rows_of(self, column: int) -> tuple[Array, bool]:
+        """The rows whose gradient depends on unknown ``column``, and whether the load's does."""
+        if column >= 5 * self.n:
+            return np.flatnonzero(self.plane == (column - 5 * self.n) // 3), False
+        owner = column // 5
+        return np.flatnonzero(self.scale == owner), owner == self.load.scale
 
 
 def second_variation(patch: Patch, K, eq: Equilibrium, load: LoadPoint, tol: float = 1e-4) -> Stability:
@@ -146,16 +154,16 @@ def second_variation(patch: Patch, K, eq: Equilibrium, load: LoadPoint, tol: flo
     H = np.zeros((N, N))
     H[: 5 * n, : 5 * n] = K.toarray()
     H[5 * n :, 5 * n :] = PLANE_WEIGHT * np.eye(N - 5 * n)
-    # Only the DOFs of scales some active row or the load touches (and the plane unknowns) enter
-    # the constraint forces: every other column of their derivative is exactly zero.
+    # Unknown i enters only the gradients of its own scale's rows (or its plane's rows) and, on
+    # the loaded scale, the load's: the other terms of column i are exactly zero.
     touched = np.unique(np.r_[lifted.scale, load.scale])
     columns = np.r_[(5 * touched[:, None] + np.arange(5)).ravel(), np.arange(5 * n, N)]
     for i in columns:
         e = np.zeros(N)
         e[i] = FD_STEP
-        H[:, i] -= (lifted.force_gradient(lifted.z0 + e) - lifted.force_gradient(lifted.z0 - e)) / (
-            2 * FD_STEP
-        )
+        rows, loaded = lifted.rows_of(int(i))
+        plus = lifted.force_gradient(lifted.z0 + e, rows, loaded)
+        H[:, i] -= (plus - lifted.force_gradient(lifted.z0 - e, rows, loaded)) / (2 * FD_STEP)
     H = 0.5 * (H + H.T)
     C = np.vstack([lifted.jacobian(lifted.z0), np.r_[load.gradient(eq.q), np.zeros(N - 5 * n)]])
     Z = la.null_space(C, rcond=1e-10)
