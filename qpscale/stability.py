@@ -91,7 +91,7 @@ class _Lifted:
         self.size = 5 * self.n + 3 * len(keys)
         self.z0 = np.r_[q.ravel(), np.zeros(3 * len(keys))]
 
-    def jacobian(self, z: Array, rows: Array | None = None) -> Array:
+    def jacobian(self, z: Array, rows: np.ndarray | None = None) -> Array:
         """Gradients (m, size) of the active gaps at z, eqs. (1)-(2); ``rows`` picks a subset."""
         k = np.arange(len(self.rows)) if rows is None else rows
         q = z[: 5 * self.n].reshape(self.n, 5)
@@ -116,16 +116,16 @@ class _Lifted:
         np.put_along_axis(out, pc, sigma[:, None] * extra, axis=1)
         return out
 
-    def force_gradient(self, z: Array, rows: Array | None = None, load: bool = True) -> Array:
+    def force_gradient(self, z: Array, rows: np.ndarray | None = None, load: bool = True) -> Array:
         """sum_k lam_k grad g_k - F grad w at z: the constraint part of the Lagrangian's gradient
         (only the rows ``rows`` of the contact sum, and the load term if ``load``)."""
         k = np.arange(len(self.rows)) if rows is None else rows
-        grad = self.lam[k] @ self.jacobian(z, k) if len(k) else np.zeros(self.size)
+        grad = np.asarray(self.lam[k] @ self.jacobian(z, k)) if len(k) else np.zeros(self.size)
         if load:
             grad[: 5 * self.n] -= self.F * self.load.gradient(z[: 5 * self.n].reshape(self.n, 5))
         return grad
 
-    def rows_of(self, column: int) -> tuple[Array, bool]:
+    def rows_of(self, column: int) -> tuple[np.ndarray, bool]:
         """The rows whose gradient depends on unknown ``column``, and whether the load's does."""
         if column >= 5 * self.n:
             return np.flatnonzero(self.plane == (column - 5 * self.n) // 3), False
