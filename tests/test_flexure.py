@@ -238,7 +238,12 @@ def test_setup_validation():
         FlexureSetup(mode="half")
     with pytest.raises(InvalidDesign, match="span"):
         FlexureSetup(span=12.0)
+    with pytest.raises(InvalidDesign, match="formulation"):
+        FlexureSetup(formulation="penalty")
     FlexureSetup(design=Design(shape="hexagon"))
+    # OSQP cannot polish the plane rows' dependent active sets (contact.md sec. 7): feature rows.
+    assert FlexureSetup(solver="osqp").formulation == "feature"
+    assert FlexureSetup().formulation == "plane"
 
 
 @pytest.mark.slow
