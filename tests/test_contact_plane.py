@@ -73,16 +73,17 @@ def test_jacobian_against_finite_differences(shape):
 def test_plane_rows_of_a_pair_sum_to_zero_force():
     # Stationarity in each plane's unknowns (contact.md sec. 7): the forces its rows put on the two
     # scales are equal and opposite, so the contact forces of the whole patch sum to zero (Newton's
-    # third law), to the QP's KKT tolerance 1e-9 times a few.
+    # third law), to the QP's KKT tolerance 1e-9 summed over the ~30 active rows: 3e-8.
     setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
     result = run_puncture(setup)
-    state = result.states[-1]
+    # A state inside the path: the last one is the fold where the path snaps (puncture.md sec. 3).
+    state = min(result.states, key=lambda s: abs(s.delta - 0.4))
     Q = contact_forces(state.contacts, state.lam)
-    assert np.abs(Q[:, :3].sum(axis=0)).max() < 1e-8
+    assert np.abs(Q[:, :3].sum(axis=0)).max() < 3e-8
     assert np.abs(Q[:, :3]).max() > 0.1
     for j in range(state.contacts.planes.count):
         rows = state.contacts.plane == j
-        assert abs(np.sum(state.lam[rows] * state.contacts.side[rows])) < 1e-8
+        assert abs(np.sum(state.lam[rows] * state.contacts.side[rows])) < 3e-8
 
 
 def test_converged_state_does_not_depend_on_the_starting_planes():
@@ -114,7 +115,9 @@ def test_plane_and_feature_formulations_agree_on_one_load_level():
     patch, K = build_model(setup)
     load = _load_point(patch, np.array([1.0, 0.0]))
     result = run_puncture(setup)
-    start, state = result.states[4], result.states[5]
+    # A level well inside the path (contact set settled), chosen by depth, not by index.
+    i = int(np.argmin([abs(s.delta - 0.2) for s in result.states]))
+    start, state = result.states[i - 1], result.states[i]
     feature = ContactSettings(formulation="feature")
     a = solve_equilibrium(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=start.contacts)
     b = solve_equilibrium(patch, K, start.q, load, state.delta, feature, SQPSettings())

@@ -172,7 +172,8 @@ def test_patch_size_convergence_of_the_substrate_coupling():
     # 0.42705, 0.42690 for rings 1-4; successive differences must shrink and the last be < 0.1 %.
     # (With contact the chain of touching scales reaches the patch's edge and F_c keeps growing:
     # puncture.md sec. 7 reports that table; it is too slow for CI.)
-    fc = [_run(Design(rings=r), interaction="substrate", load_point=(-1.0, -1.0)).Fc_star for r in (1, 2, 3, 4)]
+    corner = (-1.0, -1.0)
+    fc = [_run(Design(rings=r), interaction="substrate", load_point=corner).Fc_star for r in (1, 2, 3, 4)]
     steps = np.abs(np.diff(fc))
     assert steps[0] > steps[1] > steps[2]
     assert steps[2] < 1e-3 * fc[-1]
