@@ -25,6 +25,9 @@ NDOF = 5
 # Proximal weight on the separating planes' unknowns (formulations/increment.md sec. 2): makes the
 # QP strictly convex in a plane no row pins; zero at a converged state, so it moves no answer.
 PLANE_PROX = 1e-6
+# Trust region of a pressed plane's normal (``PlaneDamping``): weight on its two rotation unknowns
+# per unit of the normal force it transmits, in L (formulations/increment.md sec. 4b).
+PLANE_DAMPING = 1.0
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,12 @@ class SQPSettings:
     anderson_depth : int
         Depth of the Anderson acceleration (eq. (6)); 0 is the plain fixed-point iteration, a
         descent of the energy in the K metric (the landing of a snap, puncture.md sec. 4).
+    plane_damping : bool
+        Weight each pressed separating plane's rotation by the force it carries and let planes
+        with violated rows move (``PlaneDamping``, sec. 4b): cures the hinge 2-cycle of nearly
+        parallel edges.  Off by default: converged states are the same, but the stability test
+        of puncture.md sec. 4 reads the multipliers, which are not unique on such hinges, and its
+        sign there depends on the iteration that produced them.
     """
 
     solver: str = "clarabel"
@@ -91,6 +100,7 @@ class SQPSettings:
     penetration_tol: float = 1e-9
     max_iter: int = 60
     anderson_depth: int = 5
+    plane_damping: bool = False
 
 
 @dataclass
@@ -128,11 +138,12 @@ def assemble_increment(
     delta: float,
     contacts: ContactSet | None,
     J: sp.csr_matrix | None,
+    plane_weight: np.ndarray | None = None,
 ) -> IncrementQP:
     """The QP (4): min 1/2 dq'K dq + (K q)'dq s.t. -J dq <= g, a'dq = -delta - w(q).
 
-    With separating planes (``contacts.n_extra`` > 0) their unknowns follow dq, with the small
-    proximal weight ``PLANE_PROX`` on the diagonal.
+    With separating planes (``contacts.n_extra`` > 0) their unknowns follow dq, with the proximal
+    weights ``plane_weight`` (3 per plane, default ``PLANE_PROX``) on the diagonal.
     """
     x = q.reshape(-1)
     a = load.gradient(q)
@@ -141,7 +152,8 @@ def assemble_increment(
         A = sp.csc_matrix(a.reshape(1, -1))
         return IncrementQP(P=K, q=K @ x, A=A, b=b, row_labels_A=("load",))
     extra = contacts.n_extra
-    P = sp.block_diag([K, PLANE_PROX * sp.eye(extra)], format="csc") if extra else K
+    w = np.full(extra, PLANE_PROX) if plane_weight is None else np.asarray(plane_weight, dtype=float)
+    P = sp.block_diag([K, sp.diags(w)], format="csc") if extra else K
     A = sp.csc_matrix(np.r_[a, np.zeros(extra)].reshape(1, -1))
     return IncrementQP(
         P=P,
@@ -208,17 +220,76 @@ class Anderson:
         return x + f - dG @ gamma
 
 
-def _pinned_only(theta: np.ndarray, cs: ContactSet, lam: np.ndarray | None) -> np.ndarray:
-    """Plane unknowns with those of planes no row presses on set to zero (their QP optimum).
+class PlaneDamping:
+    """Trust region of the separating planes' normals: a proximal weight per pressed plane.
 
-    Nothing but the proximal weight fixes such a plane, so the solver returns it only to its
-    tolerance divided by that weight: noise that would move a certificate for no reason.
+    Formulations/increment.md sec. 4b.  A pressed plane whose active rows lie on one line (two
+    parallel edges, a corner on an edge) can hinge about that line; in the QP nothing but
+    ``PLANE_PROX`` resists the hinge, so the QP swings the plane across the whole wedge its other
+    rows allow (the dropped product of the plane's rotation and the scales' motion is then as
+    large as the step), the contact force turns with it, and the next linearisation swings it
+    back: the sequential QP cycles.  Short of a cycle, the hinge is fixed only to the solver's
+    tolerance divided by ``PLANE_PROX``, and that noise stalls the iteration above ``step_tol``.
+
+    The weight on a plane's two rotation unknowns is ``scale * PLANE_DAMPING * F``, F the normal
+    force the plane transmitted in the last QP, and never below ``PLANE_PROX``: a plane is then
+    turned only as far as its force's work pays for.  ``scale`` starts at 1 and is quartered each
+    time the plane's normal increment keeps its direction without contracting fourfold (a plane
+    that must travel far, a corner sliding off an edge, is not held back).  At a converged state
+    the plane unknowns vanish, so the weight moves no answer.
+    """
+
+    def __init__(self) -> None:
+        self.force: dict[tuple[int, int, int, int], float] = {}
+        self.scale: dict[tuple[int, int, int, int], float] = {}
+        self.last: dict[tuple[int, int, int, int], np.ndarray] = {}
+
+    def weights(self, cs: ContactSet) -> np.ndarray:
+        """Diagonal ``(3 P,)`` of the proximal term on the plane unknowns of ``cs``."""
+        count = cs.planes.count if cs.planes is not None else 0
+        w = np.full((count, 3), PLANE_PROX)
+        for j, k in enumerate(cs.planes.keys if cs.planes is not None else ()):
+            w[j, :2] = max(PLANE_PROX, PLANE_DAMPING * self.scale.get(k, 1.0) * self.force.get(k, 0.0))
+        return w.ravel()
+
+    def update(self, cs: ContactSet, theta: np.ndarray, lam: np.ndarray) -> None:
+        """Record the forces of the last QP and its plane step ``theta`` (3 P,)."""
+        if cs.planes is None or not cs.planes.count:
+            return
+        t = np.asarray(theta, dtype=float).reshape(-1, 3)
+        dn = np.einsum("pij,pj->pi", cs.planes.basis, t[:, :2])
+        on_b = cs.side > 0
+        force = np.bincount(cs.plane[on_b], weights=np.asarray(lam)[on_b], minlength=cs.planes.count)
+        self.force = {k: float(force[j]) for j, k in enumerate(cs.planes.keys)}
+        last, self.last = self.last, {}
+        for j, k in enumerate(cs.planes.keys):
+            if not np.any(dn[j]):
+                continue
+            self.last[k] = dn[j]
+            scale = self.scale.get(k, 1.0)
+            if k in last and scale > 0.0 and float(dn[j] @ last[k]) > 0.25 * float(last[k] @ last[k]):
+                self.scale[k] = 0.25 * scale if scale > 1e-3 else 0.0
+
+
+def _pinned_only(
+    theta: np.ndarray, cs: ContactSet, lam: np.ndarray | None, violated: bool = False
+) -> np.ndarray:
+    """Plane unknowns with those of free planes set to zero (their QP optimum).
+
+    A plane is free when no row presses on it and none of its rows is violated before the step:
+    nothing but the proximal weight fixes it, so the solver returns it only to its tolerance
+    divided by that weight, noise that would move a certificate for no reason.  A plane with a
+    violated row (the pieces have moved through where it was) must move to separate them, and
+    keeps its step: zeroed, it stayed where it was, violated by up to 0.5 L after many increments,
+    and every QP moved it again at the price of multipliers ``PLANE_PROX`` times its travel.
     """
     if lam is None:
         return theta
     carried = np.zeros(cs.planes.count, dtype=bool) if cs.planes is not None else np.zeros(0, dtype=bool)
     floor = max(1e-6 * float(np.max(lam, initial=0.0)), 1e-12)
-    carried[np.unique(cs.plane[(lam > floor) & (cs.plane >= 0)])] = True
+    pressed = (lam > floor) | (np.asarray(cs.gap) < 0.0) if violated else lam > floor
+    on = pressed & (cs.plane >= 0)
+    carried[np.unique(cs.plane[on])] = True
     return np.where(np.repeat(carried, 3), theta, 0.0)
 
 
@@ -280,12 +351,14 @@ def solve_equilibrium(
     rows: tuple[str, ...] | None = None
     dq = np.zeros_like(q)
     refresh: float | None = None
+    damping = PlaneDamping()
     for it in range(1, settings.max_iter + 1):
         t0 = time.perf_counter()
         cs = detect_contacts(patch, q, contact, previous=cs, refresh=refresh) if contact is not None else None
         refresh = None
         J = gap_jacobian(cs, patch, q) if cs is not None and len(cs.gap) else None
-        qp = assemble_increment(K, q, load, delta, cs, J)
+        weight = damping.weights(cs) if settings.plane_damping and cs is not None and cs.n_extra else None
+        qp = assemble_increment(K, q, load, delta, cs, J, weight)
         if fixed is not None and len(fixed):
             qp = _with_fixed(qp, fixed, q)
         build_s += time.perf_counter() - t0
@@ -297,8 +370,10 @@ def solve_equilibrium(
         dq = res.x[: q.size].reshape(q.shape)
         theta = res.x[q.size :]
         if cs is not None and cs.planes is not None and len(theta):
-            theta = _pinned_only(theta, cs, res.z)
+            theta = _pinned_only(theta, cs, res.z, violated=settings.plane_damping)
             cs = replace(cs, plane_memory=cs.planes.advanced(theta))
+            if settings.plane_damping:
+                damping.update(cs, theta, np.asarray(res.z))
         if np.max(np.abs(dq)) <= settings.step_tol:
             q = q + dq
             pen = penetration(patch, q) if contact is not None else 0.0
