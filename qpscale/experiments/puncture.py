@@ -212,6 +212,7 @@ class _Path:
         # feature rows' sticky axis and the penalty dissipate ~1e-3 of the work).
         self.conservative = _checkable(setup)
         self.smooth_from = 0  # first state after the last jump (the curvature cap's window)
+        self.unconfirmed = False  # an instability whose pushes found no lower energy (run)
 
     def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> Equilibrium:
         """The equilibrium at depth ``delta`` from ``start``; ``descent``: by the plain fixed-point
@@ -375,7 +376,9 @@ class _Path:
                     step /= 2
                 continue
             sv = self.stability(eq) if self.check else None
-            unstable = sv is not None and not sv.stable
+            unstable = sv is not None and not sv.stable and not self.unconfirmed
+            if sv is not None and sv.stable:
+                self.unconfirmed = False
             if unstable or (self.conservative and self.snapped(last, eq)):
                 if step > SNAP_RESOLUTION * eq.delta:
                     if ceiling == np.inf:
@@ -386,7 +389,18 @@ class _Path:
                     assert sv is not None
                     if self.breaks_symmetry(sv):
                         raise _Unstable(states, eq, sv, resume)
-                    eq = self.branch_off(eq, sv, sides=(1.0, -1.0))
+                    landing = self.branch_off(eq, sv, sides=(1.0, -1.0))
+                    if landing is eq:
+                        # No push along the mode lowers the energy: the negative eigenvalue is
+                        # not confirmed (multipliers not unique on a hinge, stability.md), and
+                        # the path goes on without branching until a state passes the test.
+                        self.unconfirmed = True
+                        self.events[-1]["confirmed"] = False
+                        ceiling, step = np.inf, resume
+                        self._record_contact_change(last, eq)
+                        states.append(eq)
+                        continue
+                    eq = landing
                 else:
                     eq = self.solve(last, eq.delta, len(states), descent=True)
                 if self.left_branch(last, eq):
@@ -528,7 +542,7 @@ def _one_point(
     if mirror is None:
         path = _Path(setup, patch, K, load, check=check)
         states = path.run()
-        branches = [e for e in path.events if e["kind"] == "branch"]
+        branches = [e for e in path.events if e["kind"] == "branch" and e.get("confirmed", True)]
         info = {"check": "second variation" if check else "off", "branched": bool(branches)}
         if branches:
             info.update({"delta_branch": branches[0]["delta"], "followed": "lower-energy side"})
