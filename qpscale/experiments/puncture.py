@@ -339,14 +339,13 @@ class _Path:
         """Energy released between two states: work of the load (trapezoidal) minus the stored
         energy's change.  On a continuous path it is the quadrature error, O(h^3) (O(h^2) at a
         contact closing); a jump to another equilibrium releases a finite amount (sec. 2)."""
-        return 0.5 * (a.F + b.F) * (b.delta - a.delta) - (self.energy(b) - self.energy(a))
+        return _work(a, b) - (self.energy(b) - self.energy(a))
 
     def snapped(self, a: Equilibrium, b: Equilibrium) -> bool:
         """The step released more than ``SNAP_WORK`` of its work.  Relative to the work, the
         quadrature error falls with the step (h^2 smooth, h at a kink) while a jump's release
         grows as 1/h: bisection tells them apart."""
-        work = 0.5 * (a.F + b.F) * (b.delta - a.delta)
-        return self.released(a, b) > SNAP_WORK * abs(work)
+        return self.released(a, b) > SNAP_WORK * abs(_work(a, b))
 
     def run(self, states: list[Equilibrium] | None = None, step: float | None = None) -> list[Equilibrium]:
         """Step the load until the tilt reaches phi_c; continue from ``states`` if given.
@@ -390,22 +389,19 @@ class _Path:
                     if self.breaks_symmetry(sv):
                         raise _Unstable(states, eq, sv, resume)
                     landing = self.branch_off(eq, sv, sides=(1.0, -1.0))
-                    if landing is eq:
-                        # No push along the mode lowers the energy: the negative eigenvalue is
-                        # not confirmed (multipliers not unique on a hinge, stability.md), and
-                        # the path goes on without branching until a state passes the test.
-                        self.unconfirmed = True
-                        self.events[-1]["confirmed"] = False
-                        ceiling, step = np.inf, resume
-                        self._record_contact_change(last, eq)
-                        states.append(eq)
-                        continue
-                    eq = landing
                 else:
-                    eq = self.solve(last, eq.delta, len(states), descent=True)
-                if self.left_branch(last, eq):
-                    return states
-                ceiling, step, self.smooth_from = np.inf, resume, len(states)
+                    landing = self.solve(last, eq.delta, len(states), descent=True)
+                if landing is eq:
+                    # No push along the mode lowers the energy: the negative eigenvalue is not
+                    # confirmed (multipliers not unique on a hinge, stability.md), and the path
+                    # goes on without branching, as a continuous step, until a state passes.
+                    self.unconfirmed = True
+                    self.events[-1]["confirmed"] = False
+                    ceiling, step = np.inf, resume
+                else:
+                    if self.left_branch(last, landing):
+                        return states
+                    eq, ceiling, step, self.smooth_from = landing, np.inf, resume, len(states)
             elif ceiling < np.inf:
                 # Below the ceiling the path is continuous; retest the rest of the bracket.
                 if eq.delta >= ceiling:
@@ -470,6 +466,11 @@ class _Path:
             self.events.append(
                 {"kind": "contact", "delta_between": [before.delta, after.delta], "pairs": sorted(changed)}
             )
+
+
+def _work(a: Equilibrium, b: Equilibrium) -> float:
+    """Work of the load from state ``a`` to ``b``, trapezoidal rule (F* L)."""
+    return 0.5 * (a.F + b.F) * (b.delta - a.delta)
 
 
 def _curvature_cap(states: list[Equilibrium]) -> float:
