@@ -84,7 +84,7 @@ class SQPSettings:
     max_iter : int
         Sequential QP iterations at one load level before giving up.
     anderson_depth : int
-        Depth of the Anderson acceleration (eq. (6)); 0 is the plain fixed-point iteration, a
+        Depth of the Anderson acceleration (sec. 4, Acceleration); 0 is the plain fixed-point iteration, a
         descent of the energy in the K metric (the landing of a snap, puncture.md sec. 4).
     plane_damping : bool
         Weight each pressed separating plane's rotation by the force it carries and let planes
@@ -179,7 +179,7 @@ def _with_fixed(qp: IncrementQP, fixed: np.ndarray, q: np.ndarray) -> IncrementQ
 
 
 class Anderson:
-    """Anderson acceleration (type II, depth m) of the fixed-point map q -> q + dq(q), eq. (6).
+    """Anderson acceleration (type II, depth m) of the fixed-point map q -> q + dq(q) (sec. 4).
 
     The sequential QP with P = K contracts linearly at the ratio of geometric to elastic stiffness;
     near a stability limit that ratio approaches 1 (0.985 was seen on slanted darts).  With the
@@ -296,7 +296,7 @@ def _pinned_only(
 def _accelerated(
     accel: Anderson, q: np.ndarray, dq: np.ndarray, cs: ContactSet | None
 ) -> tuple[np.ndarray, ContactSet | None]:
-    """Anderson step of the joint fixed-point map of the DOFs and the separating planes (eq. (6)).
+    """Anderson step of the joint fixed-point map of the DOFs and the separating planes (sec. 4).
 
     The planes enter as their normal and point (6 numbers each, normal re-normalised after the
     step): they converge together with the scales, so extrapolating one without the other would
@@ -337,7 +337,7 @@ def solve_equilibrium(
     for the feature formulation, keeps each pair's axis sticky, formulations/contact.md sec. 6).
     ``fixed`` ``(r, 5 n)``: extra linear constraints fixed @ q = 0 on the configuration (e.g. the
     antisymmetric modes of a mirror symmetry, to follow a symmetric branch).  While the contact rows stay
-    the same, the iterates are Anderson-accelerated (eq. (6)).
+    the same, the iterates are Anderson-accelerated (sec. 4).
 
     Raises
     ------
