@@ -367,6 +367,11 @@ def paper(
     out: Path = typer.Option(Path("paper_out"), "--out", help="Directory for the table and figures."),
     quick: bool = typer.Option(False, "--quick", help="Two designs, coarse settings (a few minutes)."),
     workers: int = typer.Option(2, "--workers", help="Parallel processes, 1 or 2."),
+    scene_time_limit: float | None = typer.Option(
+        None,
+        "--scene-time-limit",
+        help="Seconds per scene before it is recorded as time_limit (default 900, quick 300; 0: none).",
+    ),
     as_json: bool = JsonOpt,
 ) -> None:
     """Every study of the paper: results table (CSV, Parquet) and figures (PNG, SVG) in --out."""
@@ -375,6 +380,8 @@ def paper(
 
     if workers not in (1, 2):
         raise InvalidDesign("workers", workers, "{1, 2}")
+    if scene_time_limit is not None and not scene_time_limit >= 0:
+        raise InvalidDesign("scene-time-limit", scene_time_limit, "[0, inf) seconds, 0 for none")
     scenes = paper_scenes(quick)
     with _progress("paper") as bar:
         task = bar.add_task(f"paper: 0/{len(scenes)} scenes", total=len(scenes))
@@ -386,7 +393,9 @@ def paper(
                 task, description=f"paper: {done}/{len(scenes)} scenes, last {scene.key} {row['status']}"
             )
 
-        result = run_paper(out, quick=quick, workers=workers, progress=step, scenes=scenes)
+        result = run_paper(
+            out, quick=quick, workers=workers, progress=step, scenes=scenes, scene_limit_s=scene_time_limit
+        )
     failed = result.table[result.table["status"] != "ok"]
     payload = {
         "out": str(out),

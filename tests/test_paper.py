@@ -199,6 +199,8 @@ def test_cli_paper_json(tmp_path, monkeypatch):
     assert (tmp_path / "results.parquet").exists()
     bad = CliRunner().invoke(app, ["paper", "--workers", "3"])
     assert bad.exit_code == 2 and "--workers" in bad.output
+    bad = CliRunner().invoke(app, ["paper", "--scene-time-limit", "-1"])
+    assert bad.exit_code == 2 and "--scene-time-limit" in bad.output
 
 
 @pytest.mark.slow

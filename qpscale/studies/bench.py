@@ -23,10 +23,14 @@ from ..increment import SQPSettings
 from ..penalty import PenaltySettings
 from ..solvers import available_solvers
 from ..tiling import Design
+from ..timelimit import TimeLimitReached
+from ..timelimit import time_limit as wall_limit
 
 FC_TOL = 1e-2  # F_c relative error above 1 % is a failure (issue #6 stability map)
 PEN_TOL = 1e-9  # exact-contact methods must not overlap more than this (L)
 SHIFT_S = 10.0  # shift of the shifted geometric mean, seconds (qpbenchmark)
+# The reference (every symmetry-distinct vertex, tight tolerance) may take this many time limits.
+REFERENCE_LIMIT_FACTOR = 10.0
 QP_EXTRA = ("piqp", "daqp", "proxqp", "quadprog", "highs", "osqp", "clarabel", "cvxopt")
 
 
@@ -172,10 +176,14 @@ def _setup(scene: Scene, method: Method, load_point: tuple[float, float] | None)
     )
 
 
-def reference_run(scene: Scene) -> Reference:
-    """Clarabel at high accuracy over every symmetry-distinct vertex: F_c and the worst load point."""
+def reference_run(scene: Scene, limit_s: float | None = None) -> Reference:
+    """Clarabel at high accuracy over every symmetry-distinct vertex: F_c and the worst load point.
+
+    Raises :class:`TimeLimitReached` after ``limit_s`` seconds (None: no limit).
+    """
     t0 = time.perf_counter()
-    res = run_puncture(_setup(scene, Method("reference", "clarabel"), None))
+    with wall_limit(limit_s):
+        res = run_puncture(_setup(scene, Method("reference", "clarabel"), None))
     xy = tuple(float(v) for v in res.load_point)
     return Reference(scene.name, float(res.Fc_star), xy, time.perf_counter() - t0)  # type: ignore[arg-type]
 
@@ -190,11 +198,16 @@ def complementarity(res) -> float:
 
 
 def run_method(scene: Scene, method: Method, ref: Reference | None, time_limit: float) -> Run:
-    """Run one method on one scene and apply the checks; a failure keeps its status."""
+    """Run one method on one scene and apply the checks; a failure keeps its status.
+
+    A run is stopped at ``time_limit`` seconds and counted as a failure there.
+    """
     t0 = time.perf_counter()
     try:
-        with backend_overrides(method.options):
+        with wall_limit(time_limit), backend_overrides(method.options):
             res = run_puncture(_setup(scene, method, ref.load_point if ref else None))
+    except TimeLimitReached as exc:
+        return Run(method.name, scene.name, exc.status, False, time_limit, failure="time limit")
     except QpscaleError as exc:
         status = getattr(exc, "status", type(exc).__name__)
         return Run(method.name, scene.name, str(status), False, time.perf_counter() - t0, failure="solver")
@@ -253,8 +266,8 @@ def run_bench(
         if progress:
             progress(f"{scene.name}: reference")
         try:
-            refs[scene.name] = reference_run(scene)
-        except QpscaleError as exc:
+            refs[scene.name] = reference_run(scene, REFERENCE_LIMIT_FACTOR * time_limit)
+        except (QpscaleError, TimeLimitReached) as exc:
             runs += [
                 Run(
                     m.name,

@@ -166,15 +166,23 @@ def fuzz(
     solver: str = "clarabel",
     increments: int = 4,
     progress: Callable[[str], None] | None = None,
+    limit_s: float | None = 60.0,
 ) -> pd.DataFrame:
-    """``n`` random designs through the QP path (rings = 1, coarse increments): pass or fail clearly."""
+    """``n`` random designs through the QP path (rings = 1, coarse increments): pass or fail clearly.
+
+    Each design has ``limit_s`` seconds of wall time; one over it is recorded as ``time limit``.
+    """
+    import time
+
     from ..experiments.puncture import PunctureSetup, run_puncture
     from ..increment import SQPSettings
+    from ..timelimit import TimeLimitReached, time_limit
 
     rng, rows = np.random.default_rng(seed), []
     for i in range(n):
         if progress and i % 10 == 0:
             progress(f"fuzz {i}/{n}")
+        t0 = time.perf_counter()
         try:
             design, extra = random_design(rng)
             setup = PunctureSetup(
@@ -186,7 +194,8 @@ def fuzz(
                 increments=increments,
                 sqp=SQPSettings(solver=solver),
             )
-            res = run_puncture(setup)
+            with time_limit(limit_s):
+                res = run_puncture(setup)
             ok = bool(np.isfinite(res.Fc_star) and res.max_penetration <= 1e-9)
             rows.append(
                 {
@@ -202,6 +211,9 @@ def fuzz(
             rows.append({"i": i, "outcome": "invalid design", "error": str(exc)})
         except QpscaleError as exc:
             rows.append({"i": i, "outcome": "solver failure", "error": str(exc)})
+        except TimeLimitReached as exc:
+            rows.append({"i": i, "outcome": "time limit", "error": str(exc), **asdict(design), **extra})
+        rows[-1]["wall_s"] = time.perf_counter() - t0
     df = pd.DataFrame(rows)
     df.to_csv(out / "fuzz.csv", index=False)
     return df
@@ -237,7 +249,7 @@ def run_all(
         "out": str(out),
     }
     if not quick:
-        fz = fuzz(fuzz_n, out, progress=progress)
+        fz = fuzz(fuzz_n, out, progress=progress, limit_s=time_limit)
         payload["fuzz"] = {
             "n": int(len(fz)),
             "success_rate": float((fz.outcome == "pass").mean()),

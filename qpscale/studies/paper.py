@@ -22,6 +22,9 @@ from .paper_run import run_scene
 from .paper_scenes import Scene, paper_scenes
 
 MAX_WORKERS = 2
+# Wall-time limit of one scene in seconds (full run, quick run): a scene over it is recorded with
+# the status "time_limit" and the study goes on.  Each scene's time is in the table (wall_s).
+SCENE_LIMIT_S = {False: 900.0, True: 300.0}
 # Result columns always present (empty where a scene failed or does not apply).
 RESULT_COLUMNS = ("status", "error", "Fc_star", "delta_c_star", "K_phi_star", "Cf_star", "wall_s")
 
@@ -50,9 +53,15 @@ class PaperResult:
 
 
 def run_scenes(
-    scenes: list[Scene], workers: int = MAX_WORKERS, progress: Callable[[Scene, dict], None] | None = None
+    scenes: list[Scene],
+    workers: int = MAX_WORKERS,
+    progress: Callable[[Scene, dict], None] | None = None,
+    limit_s: float | None = None,
 ) -> tuple[list[dict], dict]:
-    """Run ``scenes`` on ``workers`` processes (1: in this process), rows in the order given."""
+    """Run ``scenes`` on ``workers`` processes (1: in this process), rows in the order given.
+
+    ``limit_s`` is each scene's wall-time limit (None: none).
+    """
     rows: dict[str, dict] = {}
     data: dict[str, dict] = {}
 
@@ -63,10 +72,10 @@ def run_scenes(
 
     if workers <= 1:
         for s in scenes:
-            done(s, *run_scene(s))
+            done(s, *run_scene(s, limit_s))
     else:
         with ProcessPoolExecutor(max_workers=min(workers, MAX_WORKERS)) as pool:
-            futures = {pool.submit(run_scene, s): s for s in scenes}
+            futures = {pool.submit(run_scene, s, limit_s): s for s in scenes}
             for fut in as_completed(futures):
                 done(futures[fut], *fut.result())
     return [rows[s.key] for s in scenes], data
@@ -118,6 +127,7 @@ def run_paper(
     workers: int = MAX_WORKERS,
     progress: Callable[[Scene, dict], None] | None = None,
     scenes: list[Scene] | None = None,
+    scene_limit_s: float | None = None,
 ) -> PaperResult:
     """Run every study of the paper and write the table, curves and figures into ``out``.
 
@@ -133,13 +143,17 @@ def run_paper(
         Called with (scene, row) as each scene finishes.
     scenes : list of Scene or None
         Run these instead of ``paper_scenes(quick)``.
+    scene_limit_s : float or None
+        Wall-time limit of each scene in seconds (default ``SCENE_LIMIT_S[quick]``; 0: none). A
+        scene over it gets the status ``time_limit`` and empty results; the study goes on.
     """
     from .figures import all_figures
     from .paper_findings import write_findings
 
     t0 = time.perf_counter()
     out = Path(out)
-    rows, data = run_scenes(scenes if scenes is not None else paper_scenes(quick), workers, progress)
+    limit = SCENE_LIMIT_S[quick] if scene_limit_s is None else scene_limit_s
+    rows, data = run_scenes(scenes if scenes is not None else paper_scenes(quick), workers, progress, limit)
     table = add_ratios(pd.DataFrame(rows))
     files = write_table(table, data, out)
     figures = all_figures(table, data, out)

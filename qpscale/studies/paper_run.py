@@ -15,6 +15,7 @@ import traceback
 import numpy as np
 
 from ..errors import QpscaleError, SolverFailure
+from ..timelimit import TimeLimitReached, time_limit
 from ..units import force_from_star
 from .paper_scenes import Scene
 
@@ -120,11 +121,12 @@ def _flexure(scene: Scene) -> tuple[dict, dict]:
     return row, data
 
 
-def run_scene(scene: Scene) -> tuple[dict, dict]:
+def run_scene(scene: Scene, limit_s: float | None = None) -> tuple[dict, dict]:
     """Run one scene; return its table row (parameters, results, status) and its curve data.
 
     Failures are caught here so that a study carries on: ``status`` holds the solver's
     status (or the exception's class), ``error`` the message, and result columns stay empty.
+    A scene still running after ``limit_s`` seconds is abandoned with the status ``time_limit``.
     """
     row = scene.as_dict()
     if scene.kind == "puncture":
@@ -132,9 +134,12 @@ def run_scene(scene: Scene) -> tuple[dict, dict]:
     t0 = time.perf_counter()
     data: dict = {}
     try:
-        result, data = _puncture(scene) if scene.kind == "puncture" else _flexure(scene)
+        with time_limit(limit_s):
+            result, data = _puncture(scene) if scene.kind == "puncture" else _flexure(scene)
         row.update(result)
         row["status"] = "ok"
+    except TimeLimitReached as exc:
+        row.update({"status": exc.status, "error": str(exc)})
     except SolverFailure as exc:
         row.update({"status": exc.status, "error": str(exc), "failed_increment": exc.increment})
     except QpscaleError as exc:

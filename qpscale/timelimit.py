@@ -1,0 +1,66 @@
+"""A wall-clock limit on one run (a scene of ``qpscale paper``, a method of ``qpscale bench``).
+
+A study of many scenes must not wait on one that does not end: the scene is abandoned at its
+limit and recorded with the status ``time_limit`` (the public QP benchmarks count such a run as a
+failure at the limit).  The limit is a POSIX interval timer whose signal raises
+:class:`TimeLimitReached` in the running Python code; a solver's compiled call is not cut short,
+the exception comes as soon as control returns to Python.
+
+:class:`TimeLimitReached` derives from ``BaseException`` on purpose, like ``KeyboardInterrupt``:
+the backends wrap their solver calls in ``except Exception`` (to turn a solver's own errors into
+a ``SolverFailure``), and an interruption there must end the run, not be reported as a solver
+status.  Where no interval timer exists (not the main thread, or no ``setitimer``), the limit is
+not enforced and the run goes to its end.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+STATUS = "time_limit"
+
+
+class TimeLimitReached(BaseException):
+    """The run exceeded its wall-clock limit (seconds in ``limit``)."""
+
+    status = STATUS
+
+    def __init__(self, limit: float) -> None:
+        self.limit = limit
+        super().__init__(f"stopped at the wall-time limit of {limit:g} s")
+
+
+def enforceable() -> bool:
+    """True where :func:`time_limit` can interrupt: POSIX interval timers, main thread."""
+    return hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
+
+
+@contextmanager
+def time_limit(seconds: float | None) -> Iterator[None]:
+    """Raise :class:`TimeLimitReached` in the body once ``seconds`` of wall time have passed.
+
+    ``None`` or a non-positive value sets no limit.  The previous SIGALRM handler and timer are
+    restored on exit, so limits do not leak into the caller.
+
+    >>> with time_limit(None):
+    ...     1 + 1
+    2
+    """
+    if seconds is None or seconds <= 0 or not enforceable():
+        yield
+        return
+
+    def _raise(signum: int, frame: object) -> None:
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        raise TimeLimitReached(float(seconds))
+
+    previous = signal.signal(signal.SIGALRM, _raise)
+    signal.setitimer(signal.ITIMER_REAL, float(seconds))
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        signal.signal(signal.SIGALRM, previous)

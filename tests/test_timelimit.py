@@ -1,0 +1,67 @@
+"""The wall-time limit of one run (qpscale/timelimit.py): it stops, it is not swallowed, it leaves
+no timer behind, and the studies record it as a status.  Tolerances: the limit is checked
+against the clock with 0.5 s of slack (the signal comes at the next Python bytecode)."""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+
+from qpscale.studies.bench import Method, run_method
+from qpscale.studies.bench import Scene as BenchScene
+from qpscale.studies.paper_run import run_scene
+from qpscale.studies.paper_scenes import Scene
+from qpscale.tiling import Design
+from qpscale.timelimit import STATUS, TimeLimitReached, enforceable, time_limit
+
+pytestmark = pytest.mark.skipif(not enforceable(), reason="no POSIX interval timer here")
+
+
+def _spin(seconds: float) -> None:
+    t_end = time.perf_counter() + seconds
+    while time.perf_counter() < t_end:
+        pass
+
+
+def test_limit_stops_a_busy_loop_near_the_limit():
+    t0 = time.perf_counter()
+    with pytest.raises(TimeLimitReached) as info, time_limit(0.2):
+        _spin(5.0)
+    assert 0.2 <= time.perf_counter() - t0 < 0.7
+    assert info.value.status == STATUS and info.value.limit == 0.2
+
+
+def test_limit_passes_through_except_exception_and_restores_the_handler():
+    before = signal.getsignal(signal.SIGALRM)
+    with pytest.raises(TimeLimitReached), time_limit(0.1):
+        try:
+            _spin(5.0)
+        except Exception:  # what a solver wrapper does around its call  # noqa: BLE001
+            pytest.fail("the limit was caught as an ordinary exception")
+    assert signal.getsignal(signal.SIGALRM) is before
+    assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)
+
+
+def test_no_limit_and_a_finished_body_leave_no_timer():
+    with time_limit(None):
+        _spin(0.01)
+    with time_limit(10.0):
+        _spin(0.01)
+    assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)
+
+
+def test_paper_scene_over_its_limit_is_a_status_without_results():
+    # A 5x5 array at 16 increments takes tens of seconds; 0.5 s stops it mid-path.
+    scene = Scene("interaction", "puncture", "square", "arrayed", increments=16)
+    row, data = run_scene(scene, limit_s=0.5)
+    assert row["status"] == STATUS and "Fc_star" not in row and data == {}
+    assert row["wall_s"] < 5.0
+
+
+def test_bench_run_over_its_limit_is_a_failure_at_the_limit():
+    scene = BenchScene("square5", Design(rings=2))
+    run = run_method(scene, Method("clarabel", "clarabel"), None, time_limit=0.5)
+    assert not run.success and run.failure == "time limit" and run.status == STATUS
+    assert run.wall_s == 0.5 and run.Fc_star is None
