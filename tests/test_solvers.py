@@ -196,3 +196,39 @@ def test_slow_backends_never_return_a_wrong_number(solver):
     if solver not in available_solvers():
         pytest.skip(f"{solver} not installed")
     test_never_returns_a_wrong_number(solver)
+
+
+def _spoiled_first_call(monkeypatch, error: float) -> list[dict]:
+    """Make clarabel's first answer miss by ``error`` in x (a stop just short of our check)."""
+    from qpscale.qp import candidate_result
+
+    calls: list[dict] = []
+    original = solvers._REGISTRY["clarabel"]
+
+    def spoiled(qp, opts, ws):
+        calls.append(opts)
+        r = original(qp, opts, ws)
+        if len(calls) == 1:
+            x = r.x + error
+            return candidate_result(qp, x, r.z, r.y, status="AlmostSolved", ok=True, build_s=0.0, solve_s=0.0)
+        return r
+
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", spoiled)
+    return calls
+
+
+def test_near_miss_is_solved_again_tighter_and_must_pass(monkeypatch):
+    k = synthetic_qp(3, n_blocks=4, m=12, p=1, coupling=2)
+    calls = _spoiled_first_call(monkeypatch, 5e-9)  # residuals ~1e-8: within 100 x 1e-9
+    r = solve_qp(k.qp, "clarabel", "high")
+    assert len(calls) == 2 and r.extras["retried"] and r.extras["first_status"] == "AlmostSolved"
+    assert calls[1]["tol_feas"] == pytest.approx(solvers.RETRY_TIGHTEN * calls[0]["tol_feas"])
+    assert r.found and max(r.residuals.values()) <= 1e-9 and _err(r, k) <= 1e-7
+
+
+def test_a_far_miss_fails_without_retry(monkeypatch):
+    k = synthetic_qp(3, n_blocks=4, m=12, p=1, coupling=2)
+    calls = _spoiled_first_call(monkeypatch, 1e-4)  # residuals ~1e-4: far beyond 100 x 1e-9
+    with pytest.raises(SolverFailure, match="AlmostSolved"):
+        solve_qp(k.qp, "clarabel", "high")
+    assert len(calls) == 1
