@@ -277,6 +277,28 @@ def backend_options(solver: str, tol: float) -> dict[str, Any]:
     raise InvalidDesign("solver", solver, "a known backend key")
 
 
+#: Clarabel's static regularisation on the retry (default 1e-8): on a degenerate QP (dependent
+#: active rows on a hinge) the default stalls at complementarity ~1e-7 (formulations sec. 5).
+RETRY_STATIC_REGULARIZATION = 1e-12
+
+
+def retry_options(solver: str, tol: float, near_miss: bool) -> dict[str, Any] | None:
+    """Settings of the one second attempt after a rejected answer (formulations section 5), or None.
+
+    Every backend gets the tolerance table at ``tol`` (the caller passes 1/100 of the target)
+    after a near miss; Clarabel (and CVXPY, which calls it) is also retried after any other
+    rejection, with its static regularisation lowered.
+
+    >>> retry_options("clarabel", 1e-11, near_miss=False)["static_regularization_constant"]
+    1e-12
+    >>> retry_options("osqp", 1e-11, near_miss=False) is None
+    True
+    """
+    if solver in ("clarabel", "cvxpy"):
+        return {**backend_options(solver, tol), "static_regularization_constant": RETRY_STATIC_REGULARIZATION}
+    return backend_options(solver, tol) if near_miss else None
+
+
 def candidate_result(
     qp: IncrementQP,
     x: np.ndarray | None,

@@ -301,3 +301,32 @@ def test_paper_validation_scenes_run_and_report_newtons():
         result = run_puncture(PunctureSetup(design=design))
         assert 0.1 < result.Fc_star * 0.8 < 10.0  # F_c in newtons (E* L^2 = 0.8 N)
         assert result.max_penetration <= 1e-9
+
+
+def test_a_step_that_gains_energy_is_flagged_like_one_that_releases_it():
+    # R = trapezoidal work - change of stored energy (puncture.md sec. 2).  A state holding far
+    # more energy than the load supplied (the SQP leapt into a higher basin: seen on the 5x5 dart,
+    # a step of 1.4e-5 L to 150 times the stored energy) must be bisected like a release.
+    import scipy.sparse as sp
+
+    from qpscale.experiments.puncture import SNAP_WORK, _load_point, _Path
+    from qpscale.increment import Equilibrium
+
+    setup = PunctureSetup(design=Design(rings=0))
+    patch = setup.design.patch()
+    path = _Path(setup, patch, sp.identity(5), _load_point(patch, (0.5, 0.5)))
+
+    def state(delta, F, energy):
+        q = np.zeros((1, 5))
+        q[0, 2] = np.sqrt(2.0 * energy)  # 1/2 q'Kq = energy with K = I
+        return Equilibrium(q, delta, F, None, np.zeros(0), 1, 0.0)
+
+    a = state(0.1, 1.0, 0.05)
+    work = 0.5 * (1.0 + 1.0) * 0.01
+    for change, flagged in (
+        (work, False),
+        (work * (1 - 0.5 * SNAP_WORK), False),
+        (0.5 * work, True),
+        (150 * 0.05, True),
+    ):
+        assert path.snapped(a, state(0.11, 1.0, 0.05 + change)) is flagged, change

@@ -14,7 +14,7 @@ from dataclasses import replace
 from typing import Any
 
 from ..errors import SolverFailure, SolverUnavailable
-from ..qp import IncrementQP, IncrementResult, accept, backend_options, resolve_tolerance
+from ..qp import IncrementQP, IncrementResult, accept, backend_options, resolve_tolerance, retry_options
 
 logger = logging.getLogger(__name__)
 
@@ -23,8 +23,9 @@ DEFAULT_SOLVER = "clarabel"
 
 Backend = Callable[[IncrementQP, dict, Any], IncrementResult]
 
-#: A near miss (residuals within NEAR_MISS x tolerance after the backend reported a point) is
-#: solved once more with the backend aiming RETRY_TIGHTEN x lower (formulations/increment-qp.md sec. 5).
+#: A rejected answer is solved once more (formulations/increment-qp.md sec. 5): after a near miss
+#: (residuals within NEAR_MISS x tolerance) any backend, aiming RETRY_TIGHTEN x lower; after any
+#: rejection Clarabel, also with a lower static regularisation (``qp.retry_options``).
 NEAR_MISS = 100.0
 RETRY_TIGHTEN = 1e-2
 
@@ -90,8 +91,10 @@ def solve_qp(
 
     A backend stops on its own, scaled criteria; when the point it returns misses our unscaled
     residual check by less than ``NEAR_MISS`` x ``tol``, it is solved once more with the tolerance
-    table at ``RETRY_TIGHTEN`` x ``tol`` (``extras["retried"]`` is then True).  The answer must
-    still pass the check at ``tol``: a retry never loosens anything.
+    table at ``RETRY_TIGHTEN`` x ``tol``; Clarabel is retried after any rejection, with its static
+    regularisation lowered as well (``extras["retried"]`` is then True, ``extras["first_status"]``
+    the first status).  The answer must still pass the check at ``tol``: a retry never loosens
+    anything, and the time of both attempts is counted.
 
     Returns
     -------
@@ -111,8 +114,10 @@ def solve_qp(
     opts = {**backend_options(solver, tol), **(options or {})}
     raw = _REGISTRY[solver](qp, opts, warm_start)
     result = accept(raw, tol)
-    if not result.found and result.residuals is not None and result.max_residual() <= NEAR_MISS * tol:
-        tighter = {**backend_options(solver, RETRY_TIGHTEN * tol), **(options or {})}
+    if not result.found:
+        near = result.residuals is not None and result.max_residual() <= NEAR_MISS * tol
+        again = retry_options(solver, RETRY_TIGHTEN * tol, near)
+        tighter = {**again, **(options or {})} if again is not None else opts
         if tighter != opts:
             second = accept(_REGISTRY[solver](qp, tighter, warm_start), tol)
             extras = {**second.extras, "retried": True, "first_status": raw.status}
