@@ -9,7 +9,7 @@ lives in ``increment.py``; here a QP is only ``P, q, G, h, A, b`` with row label
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -282,21 +282,25 @@ def backend_options(solver: str, tol: float) -> dict[str, Any]:
 RETRY_STATIC_REGULARIZATION = 1e-12
 
 
-def retry_options(solver: str, tol: float, near_miss: bool) -> dict[str, Any] | None:
+def retry_options(
+    solver: str, tol: float, near_miss: bool, table: Callable[[str, float], dict[str, Any]] | None = None
+) -> dict[str, Any] | None:
     """Settings of the one second attempt after a rejected answer (formulations section 5), or None.
 
     Every backend gets the tolerance table at ``tol`` (the caller passes 1/100 of the target)
     after a near miss; Clarabel (and CVXPY, which calls it) is also retried after any other
-    rejection, with its static regularisation lowered.
+    rejection, with its static regularisation lowered.  ``table`` replaces
+    :func:`backend_options` (the benchmark overrides it per method).
 
     >>> retry_options("clarabel", 1e-11, near_miss=False)["static_regularization_constant"]
     1e-12
     >>> retry_options("osqp", 1e-11, near_miss=False) is None
     True
     """
+    base = (table or backend_options)(solver, tol)
     if solver in ("clarabel", "cvxpy"):
-        return {**backend_options(solver, tol), "static_regularization_constant": RETRY_STATIC_REGULARIZATION}
-    return backend_options(solver, tol) if near_miss else None
+        return {**base, "static_regularization_constant": RETRY_STATIC_REGULARIZATION}
+    return base if near_miss else None
 
 
 def candidate_result(

@@ -269,3 +269,15 @@ def test_degenerate_hinge_qp_is_solved_by_the_retry():
     # (a hinge is free but for its small weight) are ill-conditioned and are not compared.
     ref = solve_qp(qp, "qpsolvers:quadprog", "high")
     assert np.max(np.abs(r.x[:125] - ref.x[:125])) <= 1e-9
+
+
+def test_retry_keeps_the_benchmarks_per_method_settings(monkeypatch):
+    # qpscale bench overrides the tolerance table per method (e.g. OSQP without polishing); the
+    # second attempt must be the same method at a tighter tolerance, not the default settings.
+    from qpscale.studies.bench import backend_overrides
+
+    k = synthetic_qp(3, n_blocks=4, m=12, p=1, coupling=2)
+    calls = _spoiled_first_call(monkeypatch, 5e-9, "osqp")
+    with backend_overrides({"polishing": False}):
+        solve_qp(k.qp, "osqp", "high", check=False)
+    assert len(calls) == 2 and calls[0]["polishing"] is False and calls[1]["polishing"] is False

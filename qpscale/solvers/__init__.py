@@ -116,7 +116,7 @@ def solve_qp(
     result = accept(raw, tol)
     if not result.found:
         near = result.residuals is not None and result.max_residual() <= NEAR_MISS * tol
-        again = retry_options(solver, RETRY_TIGHTEN * tol, near)
+        again = retry_options(solver, RETRY_TIGHTEN * tol, near, backend_options)
         tighter = {**again, **(options or {})} if again is not None else opts
         if tighter != opts:
             second = accept(_REGISTRY[solver](qp, tighter, warm_start), tol)
