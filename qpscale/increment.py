@@ -89,9 +89,7 @@ class SQPSettings:
     plane_damping : bool
         Weight each pressed separating plane's rotation by the force it carries and let planes
         with violated rows move (``PlaneDamping``, sec. 4b): cures the hinge 2-cycle of nearly
-        parallel edges.  Off by default: converged states are the same, but the stability test
-        of puncture.md sec. 4 reads the multipliers, which are not unique on such hinges, and its
-        sign there depends on the iteration that produced them.
+        parallel edges.  Converged states are the same with it off.
     """
 
     solver: str = "clarabel"
@@ -100,7 +98,7 @@ class SQPSettings:
     penetration_tol: float = 1e-9
     max_iter: int = 60
     anderson_depth: int = 5
-    plane_damping: bool = False
+    plane_damping: bool = True
 
 
 @dataclass

@@ -72,7 +72,11 @@ def test_isolated_scale_equals_qp():
     qp = run_puncture(_setup(0))
     pen = run_puncture(_setup(0, solver="penalty"))
     assert pen.max_penetration == 0.0
-    assert len(pen.states) == len(qp.states)
+    # The paths may differ in their steps (the QP path's energy-balance test bisects where the
+    # trapezoidal error is large; the penalty path has no such test): F_c is located at phi_c.
+    assert pen.tilt_deg[-1] == pytest.approx(13.0, rel=1e-9) and qp.tilt_deg[-1] == pytest.approx(
+        13.0, rel=1e-9
+    )
     assert abs(pen.Fc_star - qp.Fc_star) <= 1e-9 * qp.Fc_star
 
 

@@ -242,13 +242,23 @@ class _Path:
             self.load,
             delta,
             self.contact,  # type: ignore[arg-type]
-            replace(self.setup.sqp, anderson_depth=0, max_iter=LANDING_MAX_ITER)
-            if descent
-            else self.setup.sqp,
+            self.sqp(descent),
             increment=index,
             previous=start.contacts,
             fixed=self.fixed,
         )
+
+    def sqp(self, descent: bool = False) -> SQPSettings:
+        """The SQP settings of this path: the plain iteration for a landing (``descent``), and no
+        plane damping on a held-symmetry path, where the held DOFs carry whatever asymmetric force
+        a plane turned about its hinge leaves, so that its orientation is not fixed by equilibrium
+        and the damped iteration's history decides it (increment.md sec. 4b)."""
+        settings = self.setup.sqp
+        if self.fixed is not None:
+            settings = replace(settings, plane_damping=False)
+        if descent:
+            settings = replace(settings, anderson_depth=0, max_iter=LANDING_MAX_ITER)
+        return settings
 
     def energy(self, eq: Equilibrium) -> float:
         """Stored energy 1/2 q'Kq of a state (F* L)."""
