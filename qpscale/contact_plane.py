@@ -115,7 +115,9 @@ def plane_rows(
     vertices (the plane itself is unchanged), which keeps the lever arms of eq. (21) short.
     With ``refresh``, pairs that overlap by more than it restart from their best axis too: the
     linearised rotation of a plane can keep satisfying its rows while the pieces overlap (the
-    sequential QP then stalls with the overlap), and the best axis is the shortest way out.
+    sequential QP then stalls with the overlap), and the best axis is the shortest way out.  So
+    does a remembered plane that separates the pieces worse than their best axis by more than
+    ``margin`` (stale: the increment QP cannot rotate it far enough and becomes infeasible).
     """
     rows = np.flatnonzero(active)
     keys = [(int(sat.a[k]), int(sat.pa[k]), int(sat.b[k]), int(sat.pb[k])) for k in rows]
@@ -128,7 +130,14 @@ def plane_rows(
     overlapping = sat.sep[rows] < -refresh if refresh is not None else np.zeros(len(rows), dtype=bool)
     for j, key in enumerate(keys):
         if key in memory and not overlapping[j]:
-            n[j], p[j] = memory[key]
+            nm, pm = memory[key]
+            # A remembered plane that separates the pieces worse than their best axis by more
+            # than the margin is stale (it was left behind while the pieces moved on): no step
+            # of its linearised rotation reaches a separating position, and the QP would be
+            # infeasible.  It restarts from the best axis (contact.md sec. 7).
+            worst = min(float(np.min((pm - VA[j]) @ nm)), float(np.min((VB[j] - pm) @ nm)))
+            if worst >= sat.sep[rows[j]] - margin:
+                n[j], p[j] = nm, pm
     ga = np.einsum("pk,pvk->pv", n, p[:, None, :] - VA)
     gb = np.einsum("pk,pvk->pv", n, VB - p[:, None, :])
     near_a, near_b = ga < margin, gb < margin

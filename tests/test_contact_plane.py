@@ -128,3 +128,23 @@ def test_plane_and_feature_formulations_agree_on_one_load_level():
 def test_invalid_formulation():
     with pytest.raises(Exception, match="formulation"):
         ContactSettings(formulation="penalty")
+
+
+def test_a_stale_plane_restarts_from_the_best_axis_and_a_near_one_is_kept():
+    # A remembered plane that separates its pieces worse than their best axis by more than the
+    # margin cannot be turned far enough by one linearised step (the increment QP of the 5x5 dart
+    # became infeasible with rows violated by 0.94 L); it restarts from the best axis.
+    patch = Design(rings=1).patch()
+    q = np.zeros((patch.n_scales, 5))
+    fresh = detect_contacts(patch, q)
+    key = fresh.planes.keys[0]
+    n, p = fresh.plane_memory[key]
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 deg about z
+    slight = np.array([[1.0, -1e-3, 0.0], [1e-3, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    for turn, kept in ((quarter, False), (slight, True)):
+        m = turn @ n
+        memory = {**fresh.plane_memory, key: (m / np.linalg.norm(m), p)}
+        cs = detect_contacts(patch, q, previous=replace(fresh, plane_memory=memory))
+        j = cs.planes.keys.index(key)
+        expected = memory[key][0] if kept else n
+        assert np.allclose(cs.planes.normal[j], expected, atol=1e-12)
