@@ -21,6 +21,7 @@ import scipy.linalg as la
 
 from .contact import ContactSet
 from .contact_plane import tangent_basis
+from .errors import SolverFailure
 from .geometry import Array, rotation_matrices, tangent_operators
 from .increment import Equilibrium, LoadPoint
 from .tiling import Patch
@@ -133,6 +134,21 @@ class _Lifted:
         return np.flatnonzero(self.scale == owner), owner == self.load.scale
 
 
+def _null_space(C: Array) -> Array:
+    """Orthonormal basis of the null space of ``C`` (singular values below 1e-10 of the largest).
+
+    LAPACK's divide-and-conquer SVD (gesdd) occasionally fails to converge on these matrices
+    (seen on the 5x5 dart); the QR-iteration driver (gesvd) is slower but robust.  Non-finite
+    entries are a solver failure, reported as such.
+    """
+    if not np.all(np.isfinite(C)):
+        raise SolverFailure("stability", "non-finite constraint gradients", detail="second variation")
+    try:
+        return la.null_space(C, rcond=1e-10)
+    except la.LinAlgError:
+        return la.null_space(C, rcond=1e-10, lapack_driver="gesvd")
+
+
 def second_variation(patch: Patch, K, eq: Equilibrium, load: LoadPoint, tol: float = 1e-4) -> Stability:
     """Second-variation test of the converged state ``eq`` (formulations/stability.md).
 
@@ -166,7 +182,7 @@ def second_variation(patch: Patch, K, eq: Equilibrium, load: LoadPoint, tol: flo
         H[:, i] -= (plus - lifted.force_gradient(lifted.z0 - e, rows, loaded)) / (2 * FD_STEP)
     H = 0.5 * (H + H.T)
     C = np.vstack([lifted.jacobian(lifted.z0), np.r_[load.gradient(eq.q), np.zeros(N - 5 * n)]])
-    Z = la.null_space(C, rcond=1e-10)
+    Z = _null_space(C)
     scale = float(np.max(K.diagonal()))
     if Z.shape[1] == 0:
         return Stability(np.inf, True, np.zeros((n, 5)), len(lifted.rows))
