@@ -101,3 +101,29 @@ def test_summarise_applies_fc_error_and_time_limit():
 def test_unknown_method_rejected():
     with pytest.raises(InvalidDesign, match="solver"):
         Method("x", "no-such-solver")
+
+
+def test_fuzz_rows_pass_the_checks_or_carry_a_status(tmp_path, monkeypatch):
+    # Every fuzz design ends in "pass" (finite F_c, overlap <= 1e-9 L) or a named failure; a
+    # failure keeps the design's parameters and the solver's status, never a number.
+    from qpscale.errors import SolverFailure
+    from qpscale.studies import bench_report
+
+    df = bench_report.fuzz(4, tmp_path, seed=1)
+    assert len(df) == 4 and (tmp_path / "fuzz.csv").exists()
+    assert set(df.outcome) <= {"pass", "check failed", "invalid design", "solver failure", "time limit"}
+    passed = df[df.outcome == "pass"]
+    assert len(passed) >= 1
+    assert np.all(np.isfinite(passed.Fc_star)) and np.all(passed.max_penetration <= 1e-9)
+
+    def broken(setup, progress=None):
+        raise SolverFailure("clarabel", "MaxIterations", increment=2)
+
+    import qpscale.experiments.puncture as puncture
+
+    monkeypatch.setattr(puncture, "run_puncture", broken)
+    bad = bench_report.fuzz(2, tmp_path, seed=1)
+    assert list(bad.outcome) == ["solver failure"] * 2 and list(bad.status) == ["MaxIterations"] * 2
+    assert (
+        "Fc_star" not in bad and bad.shape_.notna().all() if "shape_" in bad else bad["shape"].notna().all()
+    )

@@ -170,11 +170,14 @@ def fuzz(
 ) -> pd.DataFrame:
     """``n`` random designs through the QP path (rings = 1, coarse increments): pass or fail clearly.
 
-    Each design has ``limit_s`` seconds of wall time; one over it is recorded as ``time limit``.
+    Each design is loaded at one of its top-face vertices drawn at random (the fuzz asks whether
+    every path ends in a checked answer or a clear error, not which vertex is worst; the search
+    over vertices would cost ~4x).  Each design has ``limit_s`` seconds of wall time; one over it
+    is recorded as ``time limit``.
     """
     import time
 
-    from ..experiments.puncture import PunctureSetup, run_puncture
+    from ..experiments.puncture import PunctureSetup, run_puncture, top_vertices
     from ..increment import SQPSettings
     from ..timelimit import TimeLimitReached, time_limit
 
@@ -183,10 +186,16 @@ def fuzz(
         if progress and i % 10 == 0:
             progress(f"fuzz {i}/{n}")
         t0 = time.perf_counter()
+        params: dict = {}
         try:
             design, extra = random_design(rng)
+            verts = top_vertices(design.patch())
+            xy = verts[int(rng.integers(len(verts)))]
+            extra["load_x"], extra["load_y"] = float(xy[0]), float(xy[1])
+            params = {**asdict(design), **extra}
             setup = PunctureSetup(
                 design=design,
+                load_point=(extra["load_x"], extra["load_y"]),
                 interaction="contact",
                 coupling=extra["coupling"],
                 nu=extra["nu"],
@@ -203,16 +212,17 @@ def fuzz(
                     "outcome": "pass" if ok else "check failed",
                     "Fc_star": res.Fc_star,
                     "max_penetration": res.max_penetration,
-                    **asdict(design),
-                    **extra,
+                    "n_increments": len(res.states) - 1,
+                    **params,
                 }
             )
         except InvalidDesign as exc:
-            rows.append({"i": i, "outcome": "invalid design", "error": str(exc)})
+            rows.append({"i": i, "outcome": "invalid design", "error": str(exc), **params})
         except QpscaleError as exc:
-            rows.append({"i": i, "outcome": "solver failure", "error": str(exc)})
+            status = getattr(exc, "status", type(exc).__name__)
+            rows.append({"i": i, "outcome": "solver failure", "status": status, "error": str(exc), **params})
         except TimeLimitReached as exc:
-            rows.append({"i": i, "outcome": "time limit", "error": str(exc), **asdict(design), **extra})
+            rows.append({"i": i, "outcome": "time limit", "error": str(exc), **params})
         rows[-1]["wall_s"] = time.perf_counter() - t0
     df = pd.DataFrame(rows)
     df.to_csv(out / "fuzz.csv", index=False)
