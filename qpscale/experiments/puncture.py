@@ -428,8 +428,9 @@ class _Path:
                     eq, ceiling, step = landing, np.inf, resume
                 elif landing is eq:
                     # No push along the mode lowers the energy: the negative eigenvalue is not
-                    # confirmed (multipliers not unique on a hinge, stability.md), and the path
-                    # goes on without branching, as a continuous step, until a state passes.
+                    # confirmed (it depends on how hinged planes are turned, increment.md sec. 4b),
+                    # and the path goes on without branching, as a continuous step, until a state
+                    # passes.
                     self.unconfirmed = True
                     self.events[-1]["confirmed"] = False
                     ceiling, step = np.inf, resume
