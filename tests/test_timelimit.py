@@ -65,3 +65,17 @@ def test_bench_run_over_its_limit_is_a_failure_at_the_limit():
     run = run_method(scene, Method("clarabel", "clarabel"), None, time_limit=0.5)
     assert not run.success and run.failure == "time limit" and run.status == STATUS
     assert run.wall_s == 0.5 and run.Fc_star is None
+
+
+def test_cpu_clock_counts_cpu_not_sleep():
+    # A sleeping body uses no CPU: a 0.2 s CPU limit does not stop 0.5 s of sleep, and a busy
+    # loop is stopped after about 0.2 s of CPU.
+    with time_limit(0.2, clock="cpu"):
+        time.sleep(0.5)
+    t0 = time.process_time()
+    with pytest.raises(TimeLimitReached), time_limit(0.2, clock="cpu"):
+        _spin(5.0)
+    assert 0.15 <= time.process_time() - t0 < 0.7
+    assert signal.getitimer(signal.ITIMER_PROF) == (0.0, 0.0)
+    with pytest.raises(ValueError, match="clock"), time_limit(1.0, clock="moon"):
+        pass
