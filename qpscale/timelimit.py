@@ -24,13 +24,14 @@ STATUS = "time_limit"
 
 
 class TimeLimitReached(BaseException):
-    """The run exceeded its wall-clock limit (seconds in ``limit``)."""
+    """The run exceeded its time limit (seconds in ``limit``, on ``clock``: "wall" or "cpu")."""
 
     status = STATUS
 
-    def __init__(self, limit: float) -> None:
-        self.limit = limit
-        super().__init__(f"stopped at the wall-time limit of {limit:g} s")
+    def __init__(self, limit: float, clock: str = "wall") -> None:
+        self.limit, self.clock = limit, clock
+        what = "wall-time" if clock == "wall" else "CPU-time"
+        super().__init__(f"stopped at the {what} limit of {limit:g} s")
 
 
 def enforceable() -> bool:
@@ -64,7 +65,7 @@ def time_limit(seconds: float | None, clock: str = "wall") -> Iterator[None]:
 
     def _raise(sig: int, frame: object) -> None:
         signal.setitimer(timer, 0.0)
-        raise TimeLimitReached(float(seconds))
+        raise TimeLimitReached(float(seconds), clock)
 
     previous = signal.signal(signum, _raise)
     signal.setitimer(timer, float(seconds))
