@@ -288,8 +288,8 @@ def retry_options(
     """Settings of the one second attempt after a rejected answer (formulations section 5), or None.
 
     Every backend gets the tolerance table at ``tol`` (the caller passes 1/100 of the target)
-    after a near miss; Clarabel (and CVXPY, which calls it) is also retried after any other
-    rejection, with its static regularisation lowered.  ``table`` replaces
+    after a near miss; Clarabel (directly, through CVXPY or through qpsolvers) is also retried
+    after any other rejection, with its static regularisation lowered.  ``table`` replaces
     :func:`backend_options` (the benchmark overrides it per method).
 
     >>> retry_options("clarabel", 1e-11, near_miss=False)["static_regularization_constant"]
@@ -298,7 +298,7 @@ def retry_options(
     True
     """
     base = (table or backend_options)(solver, tol)
-    if solver in ("clarabel", "cvxpy"):
+    if solver in ("clarabel", "cvxpy", "qpsolvers:clarabel"):
         return {**base, "static_regularization_constant": RETRY_STATIC_REGULARIZATION}
     return base if near_miss else None
 
