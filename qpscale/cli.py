@@ -370,7 +370,7 @@ def paper(
     scene_time_limit: float | None = typer.Option(
         None,
         "--scene-time-limit",
-        help="Seconds per scene before it is recorded as time_limit (default 900, quick 300; 0: none).",
+        help="Seconds per scene before it is recorded as time_limit (default 900, quick 60; 0: none).",
     ),
     as_json: bool = JsonOpt,
 ) -> None:
