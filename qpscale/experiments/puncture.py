@@ -335,8 +335,8 @@ class _Path:
                     self.setup.sqp.solver,
                     "failure tilt not located",
                     index,
-                    f"tilt jumps from {np.rad2deg(self.tilt_of(a)):.4g} to {np.rad2deg(self.tilt_of(b)):.4g}"
-                    f" deg at depth {a.delta:.10g} without an energy release",
+                    f"tilt jumps from {np.rad2deg(self.tilt_of(a)):.9g} to {np.rad2deg(self.tilt_of(b)):.9g}"
+                    f" deg at depth {a.delta:.10g} without a located snap",
                 )
             if f < 0:
                 a, f_lo = eq, f
