@@ -1,8 +1,11 @@
-"""A wall-clock limit on one run (a scene of ``qpscale paper``, a method of ``qpscale bench``).
+"""A time limit on one run (a scene of ``qpscale paper``, a method of ``qpscale bench``, a fuzz design).
+
+Study plumbing, not mechanics: it implements no formulation, and no formulations/ file states it.
 
 A study of many scenes must not wait on one that does not end: the scene is abandoned at its
 limit and recorded with the status ``time_limit`` (the public QP benchmarks count such a run as a
-failure at the limit).  The limit is a POSIX interval timer whose signal raises
+failure at the limit).  The limit counts wall-clock time, or the process's CPU time where the
+machine's load must not decide the outcome.  It is a POSIX interval timer whose signal raises
 :class:`TimeLimitReached` in the running Python code; a solver's compiled call is not cut short,
 the exception comes as soon as control returns to Python.
 

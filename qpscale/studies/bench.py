@@ -199,7 +199,8 @@ def _setup(scene: Scene, method: Method, load_point: tuple[float, float] | None)
 
 
 def reference_run(scene: Scene, limit_s: float | None = None) -> Reference:
-    """Clarabel at high accuracy over every symmetry-distinct vertex: F_c and the worst load point.
+    """Clarabel at high accuracy over every symmetry-distinct vertex (or at the scene's own
+    ``load_point``): F_c and the load point it belongs to.
 
     Raises :class:`TimeLimitReached` after ``limit_s`` seconds (None: no limit).
     """
