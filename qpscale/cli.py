@@ -487,15 +487,28 @@ def bench(
     out: Path = typer.Option(Path("bench_out"), "--out", help="Directory for the charts (PNG) and CSV."),
     quick: bool = typer.Option(False, "--quick", help="Two scenes, fewer methods, a small stability grid."),
     time_limit: float = typer.Option(60.0, "--time-limit", help="Seconds per curve counted for a failure."),
+    workers: int = typer.Option(1, "--workers", help="Parallel processes (at most the core count)."),
+    fuzz_n: int = typer.Option(1000, "--fuzz", help="Random designs of the fuzz grid (full bench; 0: none)."),
     as_json: bool = JsonOpt,
 ) -> None:
     """Solver and formulation comparison: speed against accuracy, stability where methods fail."""
     from .studies.bench_report import run_all
+    from .studies.parallel import check_workers
 
+    if not time_limit > 0:
+        raise InvalidDesign("time-limit", time_limit, "(0, inf) seconds")
+    check_workers(workers)
+    if fuzz_n < 0:
+        raise InvalidDesign("fuzz", fuzz_n, "an integer >= 0")
     with _progress("bench") as bar:
         task = bar.add_task("bench", total=None)
         payload = run_all(
-            out, quick, time_limit, progress=lambda m: bar.update(task, description=f"bench: {m}")
+            out,
+            quick,
+            time_limit,
+            progress=lambda m: bar.update(task, description=f"bench: {m}"),
+            fuzz_n=fuzz_n,
+            workers=workers,
         )
 
     def summary(p: dict[str, Any]) -> None:
@@ -506,6 +519,8 @@ def bench(
                 + (f", x{ratio:.2f} of cvxpy" if ratio is not None else "")
                 + (f", F_c error {m['Fc_rel_error']:.1e}" if m["Fc_rel_error"] is not None else "")
             )
+        for name, f in p.get("fuzz", {}).get("methods", {}).items():
+            console.print(f"fuzz {name:>17}: {f['success_rate']:.1%} of {f['designs']} designs pass")
         console.print(f"charts and CSV in {p['out']}")
 
     emit(payload, as_json, summary)

@@ -25,6 +25,7 @@ from ..solvers import available_solvers
 from ..tiling import Design
 from ..timelimit import TimeLimitReached
 from ..timelimit import time_limit as wall_limit
+from .parallel import pmap
 
 FC_TOL = 1e-2  # F_c relative error above 1 % is a failure (issue #6 stability map)
 PEN_TOL = 1e-9  # exact-contact methods must not overlap more than this (L)
@@ -228,7 +229,7 @@ def run_method(scene: Scene, method: Method, ref: Reference | None, time_limit: 
     t0 = time.perf_counter()
     try:
         with wall_limit(time_limit), backend_overrides(method.options):
-            res = run_puncture(_setup(scene, method, ref.load_point if ref else None))
+            res = run_puncture(_setup(scene, method, ref.load_point if ref else scene.load_point))
     except TimeLimitReached as exc:
         return Run(method.name, scene.name, exc.status, False, time_limit, failure="time limit")
     except QpscaleError as exc:
@@ -276,37 +277,47 @@ class BenchResult:
     extras: dict = field(default_factory=dict)
 
 
+def _reference_or_failure(scene: Scene, limit_s: float) -> Reference | str:
+    """The scene's reference, or the status that stopped it (a worker's return value)."""
+    try:
+        return reference_run(scene, limit_s)
+    except (QpscaleError, TimeLimitReached) as exc:
+        return str(getattr(exc, "status", exc))
+
+
 def run_bench(
     scenes: list[Scene],
     methods: list[Method],
     time_limit: float = 60.0,
     progress: Callable[[str], None] | None = None,
+    workers: int = 1,
 ) -> BenchResult:
-    """Reference per scene, then every method on every scene with a reference; summarised."""
-    refs: dict[str, Reference] = {}
+    """Reference per scene, then every method on every scene with a reference; summarised.
+
+    ``workers`` processes run the references, then the (scene, method) runs, one run per process
+    at a time (:mod:`qpscale.studies.parallel`): with no more workers than cores each run's wall
+    time is what it would be alone, so the ratios of one run stay comparable.
+    """
+    found = pmap(
+        _reference_or_failure,
+        [(s, REFERENCE_LIMIT_FACTOR * time_limit) for s in scenes],
+        workers,
+        progress,
+        lambda t: f"{t[0].name}: reference",
+    )
+    refs = {s.name: r for s, r in zip(scenes, found, strict=True) if isinstance(r, Reference)}
+    tasks = [(s, m, refs[s.name], time_limit) for s in scenes if s.name in refs for m in methods]
+    done = pmap(run_method, tasks, workers, progress, lambda t: f"{t[0].name}: {t[1].name}")
+    by_key = {(r.scene, r.method): r for r in done}
     runs: list[Run] = []
-    for scene in scenes:
-        if progress:
-            progress(f"{scene.name}: reference")
-        try:
-            refs[scene.name] = reference_run(scene, REFERENCE_LIMIT_FACTOR * time_limit)
-        except (QpscaleError, TimeLimitReached) as exc:
-            runs += [
-                Run(
-                    m.name,
-                    scene.name,
-                    f"no reference: {getattr(exc, 'status', exc)}",
-                    False,
-                    time_limit,
-                    failure="no reference",
-                )
-                for m in methods
-            ]
-            continue
+    for s, r in zip(scenes, found, strict=True):
         for m in methods:
-            if progress:
-                progress(f"{scene.name}: {m.name}")
-            runs.append(run_method(scene, m, refs[scene.name], time_limit))
+            if isinstance(r, Reference):
+                runs.append(by_key[(s.name, m.name)])
+            else:
+                runs.append(
+                    Run(m.name, s.name, f"no reference: {r}", False, time_limit, failure="no reference")
+                )
     result = BenchResult(refs, runs, time_limit)
     result.summary = summarise(runs, [m.name for m in methods], time_limit)
     return result

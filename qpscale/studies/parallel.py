@@ -1,0 +1,61 @@
+"""Run independent study tasks on several processes (``qpscale bench --workers``).
+
+Implements no formulation: this is plumbing.  Each task runs whole in one worker process (its
+own interpreter, started by ``spawn`` so that no lock held by the parent's progress-bar thread is
+copied into a child), and a worker runs one task at a time, so a per-task time limit
+(:mod:`qpscale.timelimit`, a POSIX timer of the worker's main thread) and a measured wall time
+mean what they mean in a serial run as long as ``workers`` does not exceed the machine's cores.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from typing import Any, TypeVar
+
+from ..errors import InvalidDesign
+
+T = TypeVar("T")
+
+
+def check_workers(workers: int) -> int:
+    """``workers`` as given, or :class:`InvalidDesign` naming the allowed range (1 to the core count)."""
+    cores = os.cpu_count() or 1
+    if not isinstance(workers, int) or not 1 <= workers <= max(cores, 1):
+        raise InvalidDesign("workers", workers, f"an integer from 1 to {cores} (this machine's cores)")
+    return workers
+
+
+def pmap(
+    fn: Callable[..., T],
+    tasks: Sequence[tuple[Any, ...]],
+    workers: int = 1,
+    progress: Callable[[str], None] | None = None,
+    label: Callable[[tuple[Any, ...]], str] | None = None,
+) -> list[T]:
+    """``[fn(*task) for task in tasks]``, on ``workers`` processes when ``workers > 1``; order kept.
+
+    ``fn`` must be a module-level function (the workers import it).  ``progress`` is called with
+    ``label(task)`` when a task starts (serial) or ends (parallel).  An exception in a task is
+    raised here, as in the serial loop.
+    """
+    check_workers(workers)
+    if workers == 1 or len(tasks) <= 1:
+        out = []
+        for task in tasks:
+            if progress and label:
+                progress(label(task))
+            out.append(fn(*task))
+        return out
+    results: list[Any] = [None] * len(tasks)
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures = {pool.submit(fn, *task): i for i, task in enumerate(tasks)}
+        for done, fut in enumerate(as_completed(futures), start=1):
+            i = futures[fut]
+            results[i] = fut.result()
+            if progress:
+                progress(f"{done}/{len(tasks)} " + (label(tasks[i]) if label else ""))
+    return results
