@@ -15,9 +15,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
-from .errors import SolverFailure
+from .errors import InvalidDesign, SolverFailure
 from .geometry import rotation_matrix, tangent_operator
-from .qp import IncrementQP
+from .qp import IncrementQP, resolve_tolerance
 from .solvers import solve_qp
 from .tiling import Patch
 
@@ -28,6 +28,19 @@ PLANE_PROX = 1e-6
 # Trust region of a pressed plane's normal (``PlaneDamping``): weight on its two rotation unknowns
 # per unit of the normal force it transmits, in L (formulations/increment.md sec. 4b).
 PLANE_DAMPING = 1.0
+# Convergence of the sequential QP at the high accuracy (sec. 4, eqs. (5)-(6)); looser QP
+# tolerances loosen both (SQPSettings).
+STEP_TOL = 1e-8
+PENETRATION_TOL = 1e-9
+# A load level whose step |dq| has not halved over STALL_WINDOW iterations while below STALL_BAND
+# is stalled on solver noise (a plane hinge fixed only to the QP tolerance over PLANE_PROX,
+# formulations/increment.md sec. 4c); its remaining QPs are solved at STALL_TIGHTEN x the
+# tolerance.  Above STALL_BAND a slow step is the path's geometry, not noise.
+STALL_WINDOW = 8
+# Growth of the step that restarts Anderson's history (sec. 4, Acceleration).
+ANDERSON_GROWTH = 2.0
+STALL_BAND = 1e-5
+STALL_TIGHTEN = 1e-2
 
 
 @dataclass(frozen=True)
@@ -78,9 +91,11 @@ class SQPSettings:
     accuracy : str or float
         KKT tolerance of each QP: ``high`` 1e-9, ``mid`` 1e-6, ``low`` 1e-3, or a float.
     step_tol : float
-        Converged when the largest DOF increment is below this (L or rad).
+        Converged when the largest DOF increment is below this (L or rad); 0 (default): ten
+        times the QP tolerance, at least 1e-8 (sec. 4: a QP solved to tol moves dq by ~tol).
     penetration_tol : float
-        Largest exact overlap accepted after the rigid-body update, in L.
+        Largest exact overlap accepted after the rigid-body update, in L; 0 (default): the QP
+        tolerance, at least 1e-9 (a QP solved to tol meets its rows to tol, no better).
     max_iter : int
         Sequential QP iterations at one load level before giving up.
     anderson_depth : int
@@ -94,11 +109,20 @@ class SQPSettings:
 
     solver: str = "clarabel"
     accuracy: str | float = "high"
-    step_tol: float = 1e-8
-    penetration_tol: float = 1e-9
+    step_tol: float = 0.0
+    penetration_tol: float = 0.0
     max_iter: int = 60
     anderson_depth: int = 5
     plane_damping: bool = True
+
+    def __post_init__(self) -> None:
+        tol = resolve_tolerance(self.accuracy)
+        if not self.step_tol >= 0.0 or not self.penetration_tol >= 0.0:
+            raise InvalidDesign("step_tol/penetration_tol", (self.step_tol, self.penetration_tol), "[0, inf)")
+        if self.step_tol == 0.0:
+            object.__setattr__(self, "step_tol", max(STEP_TOL, 10.0 * tol))
+        if self.penetration_tol == 0.0:
+            object.__setattr__(self, "penetration_tol", max(PENETRATION_TOL, tol))
 
 
 @dataclass
@@ -127,6 +151,16 @@ class Equilibrium:
     residuals: dict[str, float] = field(default_factory=dict)
     build_s: float = 0.0
     solve_s: float = 0.0
+    tightened: bool = False
+    fallback: bool = False
+
+
+def _stalled(steps: list[float]) -> bool:
+    """True when the last ``STALL_WINDOW`` steps, all below ``STALL_BAND``, did not halve the
+    smallest step before them (sec. 4c)."""
+    if len(steps) <= STALL_WINDOW or steps[-1] > STALL_BAND:
+        return False
+    return min(steps[-STALL_WINDOW:]) > 0.5 * min(steps[:-STALL_WINDOW])
 
 
 def assemble_increment(
@@ -202,7 +236,7 @@ class Anderson:
         problem is regularised by 1e-4 |f|^2 so that differences of round-off size (a stagnating
         residual) give small coefficients instead of cancelling the plain step.
         """
-        if self.f and np.linalg.norm(f) > np.linalg.norm(self.f[-1]):
+        if self.f and np.linalg.norm(f) > ANDERSON_GROWTH * np.linalg.norm(self.f[-1]):
             self.reset()
         self.x.append(x.copy())
         self.f.append(f.copy())
@@ -350,6 +384,9 @@ def solve_equilibrium(
     dq = np.zeros_like(q)
     refresh: float | None = None
     damping = PlaneDamping()
+    accuracy: str | float = settings.accuracy
+    steps: list[float] = []
+    tighten_tried = False
     for it in range(1, settings.max_iter + 1):
         t0 = time.perf_counter()
         cs = detect_contacts(patch, q, contact, previous=cs, refresh=refresh) if contact is not None else None
@@ -361,9 +398,16 @@ def solve_equilibrium(
             qp = _with_fixed(qp, fixed, q)
         build_s += time.perf_counter() - t0
         try:
-            res = solve_qp(qp, solver=settings.solver, accuracy=settings.accuracy, check=True)
+            res = solve_qp(qp, solver=settings.solver, accuracy=accuracy, check=True)
         except SolverFailure as exc:
-            raise SolverFailure(exc.solver, exc.status, increment, exc.detail) from exc
+            if accuracy == settings.accuracy:
+                raise SolverFailure(exc.solver, exc.status, increment, exc.detail) from exc
+            # The backend cannot reach the tightened tolerance: back to the one asked for.
+            accuracy = settings.accuracy
+            try:
+                res = solve_qp(qp, solver=settings.solver, accuracy=accuracy, check=True)
+            except SolverFailure as exc2:
+                raise SolverFailure(exc2.solver, exc2.status, increment, exc2.detail) from exc2
         solve_s += res.build_s + res.solve_s
         dq = res.x[: q.size].reshape(q.shape)
         theta = res.x[q.size :]
@@ -390,7 +434,11 @@ def solve_equilibrium(
                 residuals=dict(res.residuals),
                 build_s=build_s,
                 solve_s=solve_s,
+                tightened=accuracy != settings.accuracy,
             )
+        steps.append(float(np.max(np.abs(dq))))
+        if not tighten_tried and _stalled(steps):
+            accuracy, tighten_tried = STALL_TIGHTEN * resolve_tolerance(settings.accuracy), True
         labels = cs.labels if cs is not None else ()
         if labels != rows:
             accel.reset()

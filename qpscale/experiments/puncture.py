@@ -215,6 +215,7 @@ class _Path:
         self.conservative = _checkable(setup)
         self.smooth_from = 0  # first state after the last jump (the curvature cap's window)
         self.unconfirmed = False  # an instability whose pushes found no lower energy (run)
+        self.fallbacks = 0  # levels solved with the feature rows after the planes failed (solve)
 
     def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> Equilibrium:
         """The equilibrium at depth ``delta`` from ``start``; ``descent``: by the plain fixed-point
@@ -235,17 +236,47 @@ class _Path:
                 increment=index,
                 previous=start.contacts,
             )
-        return solve_equilibrium(
+        try:
+            return solve_equilibrium(
+                self.patch,
+                self.K,
+                start.q,
+                self.load,
+                delta,
+                self.contact,  # type: ignore[arg-type]
+                self.sqp(descent),
+                increment=index,
+                previous=start.contacts,
+                fixed=self.fixed,
+            )
+        except SolverFailure as exc:
+            if not self._falls_back(exc):
+                raise
+        # The separating planes did not converge at this level: the feature rows (contact.md
+        # secs. 3-6), which have no plane unknowns to cycle, take this one level (sec. 2b).
+        assert self.contact is not None
+        self.fallbacks += 1
+        eq = solve_equilibrium(
             self.patch,
             self.K,
             start.q,
             self.load,
             delta,
-            self.contact,  # type: ignore[arg-type]
+            replace(self.contact, formulation="feature"),
             self.sqp(descent),
             increment=index,
-            previous=start.contacts,
+            previous=None,
             fixed=self.fixed,
+        )
+        return replace(eq, fallback=True)
+
+    def _falls_back(self, exc: SolverFailure) -> bool:
+        """Whether a failed level is retried with the feature rows (sec. 2b): plane formulation,
+        and the sequential QP ran out of iterations (not a backend failure)."""
+        return (
+            self.contact is not None
+            and self.contact.formulation == "plane"
+            and exc.status == "sequential QP did not converge"
         )
 
     def sqp(self, descent: bool = False) -> SQPSettings:
@@ -376,6 +407,9 @@ class _Path:
         the load supplied, which no quasi-static path reaches: the SQP leapt into a higher basin
         (seen on the 5x5 dart: a step of 1.4e-5 L to a state of 150 times the stored energy).
         """
+        if a.fallback or b.fallback:
+            # The feature rows' sticky axis dissipates ~1e-3 of the work (sec. 2b): no test.
+            return False
         return abs(self.released(a, b)) > SNAP_WORK * abs(_work(a, b))
 
     def run(self, states: list[Equilibrium] | None = None, step: float | None = None) -> list[Equilibrium]:
@@ -405,7 +439,7 @@ class _Path:
                 else:
                     step /= 2
                 continue
-            sv = self.stability(eq) if self.check else None
+            sv = self.stability(eq) if self.check and not eq.fallback else None
             unstable = sv is not None and not sv.stable and not self.unconfirmed
             if sv is not None and sv.stable:
                 self.unconfirmed = False
@@ -491,6 +525,8 @@ class _Path:
         if len(states) < 2:
             return np.inf
         a, b = states[-2], states[-1]
+        if not b.delta > a.delta:
+            return np.inf  # a jump's landing, at the depth of the state before it
         rate = (self.tilt_of(b) - self.tilt_of(a)) / (b.delta - a.delta)
         if not rate > 0:
             return np.inf

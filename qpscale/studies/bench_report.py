@@ -18,7 +18,7 @@ from ..errors import InvalidDesign, QpscaleError
 from ..experiments.puncture import top_vertices
 from ..penalty import PenaltySettings
 from ..tiling import DESIGNS, Design
-from .bench import FC_TOL, PEN_TOL, BenchResult, Method, Reference, Run, Scene, run_method
+from .bench import FC_TOL, BenchResult, Method, Reference, Run, Scene, run_method
 from .parallel import pmap
 
 FLOOR = 1e-16  # F_c errors are drawn at least at this value on the log axis
@@ -279,7 +279,7 @@ def _fuzz_design(rng: np.random.Generator, method: Method, increments: int, limi
         )
         with time_limit(limit_s, clock="cpu"):
             res = run_puncture(setup)
-        pen_ok = not method.exact_contact or res.max_penetration <= PEN_TOL
+        pen_ok = not method.exact_contact or res.max_penetration <= method.penetration_tol
         row = {
             "outcome": "pass" if np.isfinite(res.Fc_star) and pen_ok else "check failed",
             "Fc_star": res.Fc_star,
