@@ -34,13 +34,14 @@ STEP_TOL = 1e-8
 PENETRATION_TOL = 1e-9
 # A load level whose step |dq| has not halved over STALL_WINDOW iterations while below STALL_BAND
 # is stalled on solver noise (a plane hinge fixed only to the QP tolerance over PLANE_PROX,
-# formulations/increment.md sec. 4c); its remaining QPs are solved at STALL_TIGHTEN x the
-# tolerance.  Above STALL_BAND a slow step is the path's geometry, not noise.
+# formulations/increment.md sec. 4, "Stall on noise"); its remaining QPs are solved at
+# STALL_TIGHTEN x the tolerance.  Above STALL_BAND a slow step is the path's geometry, not noise.
 STALL_WINDOW = 8
-# Growth of the step that restarts Anderson's history (sec. 4, Acceleration).
-ANDERSON_GROWTH = 2.0
 STALL_BAND = 1e-5
 STALL_TIGHTEN = 1e-2
+# A step this many times the last restarts Anderson's history (sec. 4, Acceleration): a mildly
+# expanding mode is what the extrapolation cures, a leap out of the smooth region is not.
+ANDERSON_GROWTH = 2.0
 
 
 @dataclass(frozen=True)
@@ -157,7 +158,7 @@ class Equilibrium:
 
 def _stalled(steps: list[float]) -> bool:
     """True when the last ``STALL_WINDOW`` steps, all below ``STALL_BAND``, did not halve the
-    smallest step before them (sec. 4c)."""
+    smallest step before them (sec. 4, "Stall on noise")."""
     if len(steps) <= STALL_WINDOW or steps[-1] > STALL_BAND:
         return False
     return min(steps[-STALL_WINDOW:]) > 0.5 * min(steps[:-STALL_WINDOW])
@@ -231,8 +232,8 @@ class Anderson:
     def step(self, x: np.ndarray, f: np.ndarray) -> np.ndarray:
         """Next iterate from the current one and its QP step.
 
-        Safeguards: a step that grew the residual restarts the history with a plain step (the
-        extrapolation had left the region where the map is smooth), and the least-squares
+        Safeguards: a step more than ``ANDERSON_GROWTH`` times the last restarts the history with a
+        plain step (the extrapolation had left the region where the map is smooth), and the least-squares
         problem is regularised by 1e-4 |f|^2 so that differences of round-off size (a stagnating
         residual) give small coefficients instead of cancelling the plain step.
         """

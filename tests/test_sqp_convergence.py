@@ -121,3 +121,65 @@ def test_dart_5x5_hinge_vertex_converges_at_every_level(monkeypatch):
         cvx = SQPSettings(solver="cvxpy", plane_damping=True)
         other = run_puncture(PunctureSetup(design=design, load_point=HINGE_VERTEX, probe=False, sqp=cvx))
         assert other.Fc_star == pytest.approx(result.Fc_star, rel=1e-6)
+
+
+def test_stall_is_a_window_without_halving_below_the_band():
+    # Geometric convergence (halving each step) is never a stall; a plateau below STALL_BAND is,
+    # once the window has passed; the same plateau above the band is the path's geometry.
+    w, band = increment.STALL_WINDOW, increment.STALL_BAND
+    halving = [1e-3 * 0.5**k for k in range(3 * w)]
+    assert not any(increment._stalled(halving[: k + 1]) for k in range(len(halving)))
+    # A plateau at 3e-7 +-10 %: a stall once a whole window has followed its first value.
+    plateau = [1e-4, 1e-5] + [3e-7 * (1.0 + 0.1 * (-1) ** k) for k in range(2 * w)]
+    first = next(k for k in range(len(plateau)) if increment._stalled(plateau[: k + 1]))
+    assert first == 2 + w
+    high = [100 * band / 3e-7 * x for x in plateau]  # the same plateau above the band
+    assert not any(increment._stalled(high[: k + 1]) for k in range(len(high)))
+
+
+@pytest.mark.parametrize(
+    ("accuracy", "step", "pen"), [("high", 1e-8, 1e-9), ("mid", 1e-5, 1e-6), ("low", 1e-2, 1e-3)]
+)
+def test_sqp_tolerances_follow_the_qp_accuracy(accuracy, step, pen):
+    # A QP solved to tol moves dq by ~tol/lambda_min(K) and meets its rows to tol: the step and
+    # overlap tests scale with it, never below the high-accuracy floors; explicit values are kept.
+    s = SQPSettings(accuracy=accuracy)
+    assert s.step_tol == pytest.approx(step) and s.penetration_tol == pytest.approx(pen)
+    assert SQPSettings(accuracy=accuracy, step_tol=3e-7).step_tol == 3e-7
+    from qpscale.errors import InvalidDesign
+
+    with pytest.raises(InvalidDesign, match="step_tol"):
+        SQPSettings(step_tol=-1.0)
+
+
+def test_level_the_planes_cannot_converge_falls_back_to_feature_rows():
+    # A fuzz design (seed 1000, design 6) whose separating planes cycle at one load level: without
+    # the fallback the path halves its step until the fuzz's time limit.  With it, one level is
+    # solved with the feature rows and the path ends at phi_c; F_c does not depend on where the
+    # fallback level falls (4 and 32 target increments put it at states 1 and 7): same F_c to
+    # 1e-6 (measured 3e-9), and the exact overlap stays within 1e-9 L.
+    design = Design(
+        shape="triangle",
+        tiling="staggered",
+        slant_deg=41.901523914954424,
+        slant_dir_deg=45.0,
+        gap=0.0002888633811329533,
+        thickness=0.94663635392896,
+        rings=1,
+    )
+    fc = {}
+    for n in (4, 32):
+        setup = PunctureSetup(
+            design=design,
+            load_point=(0.600626167307942, 2.3553915179112654),
+            interaction="contact",
+            coupling=0.05379910883697381,
+            nu=0.2838343769210938,
+            probe=False,
+            increments=n,
+        )
+        res = run_puncture(setup)
+        assert any(st.fallback for st in res.states)
+        assert res.max_penetration <= 1e-9
+        fc[n] = res.Fc_star
+    assert fc[4] == pytest.approx(fc[32], rel=1e-6)
