@@ -58,6 +58,8 @@ def test_failing_method_counted_at_time_limit():
     assert row["median_wall_s"] == LIMIT  # failures are timed at the limit (qpbenchmark)
     assert row["Fc_rel_error"] is None  # a failure is a status, never a number
     assert all("newton did not converge" in s for s in row["statuses"])
+    runs = [r for r in _result().runs if r.method == "penalty-broken"]
+    assert all("penalty" in r.detail and "did not converge" in r.detail for r in runs)  # the message
 
 
 def test_successes_pass_checks_against_reference():

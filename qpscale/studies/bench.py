@@ -113,6 +113,7 @@ class Run:
     complementarity: float | None = None
     qp_solves: int | None = None
     failure: str = ""
+    detail: str = ""  # the error message of a failed run (the residuals a rejected answer missed by)
 
 
 @dataclass
@@ -242,7 +243,8 @@ def run_method(scene: Scene, method: Method, ref: Reference | None, time_limit: 
         return Run(method.name, scene.name, exc.status, False, time_limit, failure="time limit")
     except QpscaleError as exc:
         status = getattr(exc, "status", type(exc).__name__)
-        return Run(method.name, scene.name, str(status), False, time.perf_counter() - t0, failure="solver")
+        wall = time.perf_counter() - t0
+        return Run(method.name, scene.name, str(status), False, wall, failure="solver", detail=str(exc))
     wall = time.perf_counter() - t0
     run = Run(
         method.name,
