@@ -183,3 +183,18 @@ def test_level_the_planes_cannot_converge_falls_back_to_feature_rows():
         assert res.max_penetration <= 1e-9
         fc[n] = res.Fc_star
     assert fc[4] == pytest.approx(fc[32], rel=1e-6)
+
+
+@pytest.mark.slow
+def test_dart_tip_path_passes_where_no_extrapolated_step_converges():
+    # The 5x5 dart at alpha0 = 60 deg loaded at its tip: near delta = 0.11392 the Anderson-
+    # extrapolated iteration fails or leaps (tilts 0.9-15 deg) at every step; the plain iteration
+    # then stays on the branch and the path reaches phi_c.  Independent check: a different
+    # step sequence (8 and 16 target increments) gives the same F_c to 1e-6.
+    tip = (float(np.sqrt(3.0) - 2.0), -1.5)
+    design = Design(shape="dart", slant_deg=60.0)
+    fc = [
+        run_puncture(PunctureSetup(design=design, load_point=tip, probe=False, increments=n)).Fc_star
+        for n in (8, 16)
+    ]
+    assert fc[0] == pytest.approx(fc[1], rel=1e-6)

@@ -273,11 +273,7 @@ class _Path:
     def _falls_back(self, exc: SolverFailure) -> bool:
         """Whether a failed level is retried with the feature rows (sec. 2b): plane formulation,
         and the sequential QP ran out of iterations (not a backend failure)."""
-        return (
-            self.contact is not None
-            and self.contact.formulation == "plane"
-            and exc.status == "sequential QP did not converge"
-        )
+        return self.contact is not None and self.contact.formulation == "plane"
 
     def sqp(self, descent: bool = False) -> SQPSettings:
         """The SQP settings of this path: the plain iteration for a landing (``descent``), and no
@@ -432,18 +428,30 @@ class _Path:
             try:
                 eq = self.solve(_predict(states, last.delta + step), last.delta + step, len(states))
             except SolverFailure:
-                if step < 2.0 * min_step:
-                    raise
-                if ceiling < np.inf:
-                    ceiling, retest = last.delta + step, False
-                else:
-                    step /= 2
-                continue
-            sv = self.stability(eq) if self.check and not eq.fallback else None
+                if step >= 2.0 * min_step:
+                    if ceiling < np.inf:
+                        ceiling, retest = last.delta + step, False
+                    else:
+                        step /= 2
+                    continue
+                # No step converges, however short: the plain iteration (an energy descent from
+                # the last state, sec. 2 Landing) either follows the branch where the extrapolated
+                # one leapt or cycled, or lands past a limit point; if it fails too, so does the path.
+                eq = self.solve(last, last.delta + step, len(states), descent=True)
+                if self.snapped(last, eq):
+                    if self.left_branch(last, eq):
+                        return states
+                    self.smooth_from = len(states)
+                ceiling, step, landed = np.inf, resume, True
+            else:
+                landed = False
+            sv = self.stability(eq) if self.check and not eq.fallback and not landed else None
             unstable = sv is not None and not sv.stable and not self.unconfirmed
             if sv is not None and sv.stable:
                 self.unconfirmed = False
-            if unstable or (self.conservative and self.snapped(last, eq)):
+            if landed:
+                pass
+            elif unstable or (self.conservative and self.snapped(last, eq)):
                 if step > SNAP_RESOLUTION * eq.delta:
                     if ceiling == np.inf:
                         resume = step
