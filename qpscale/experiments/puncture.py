@@ -271,8 +271,8 @@ class _Path:
         return replace(eq, fallback=True)
 
     def _falls_back(self, exc: SolverFailure) -> bool:
-        """Whether a failed level is retried with the feature rows (sec. 2b): plane formulation,
-        and the sequential QP ran out of iterations (not a backend failure)."""
+        """Whether a failed level is retried with the feature rows (sec. 2b): any failure of the
+        plane formulation (out of iterations, or a QP infeasible or inaccurate)."""
         return self.contact is not None and self.contact.formulation == "plane"
 
     def sqp(self, descent: bool = False) -> SQPSettings:
