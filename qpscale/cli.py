@@ -7,8 +7,10 @@ naming the parameter; a solver failure exits with status 3 and the solver's stat
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
 import sys
 from collections.abc import Callable
 from functools import wraps
@@ -58,12 +60,49 @@ FLAG_OF = {
 }
 
 
+# While a --json command computes, file descriptor 1 points at stderr and the real stdout is kept
+# here for the one JSON object: a C library's banner (HiGHS prints one from C++) must not
+# corrupt the output that scripts parse.
+_json_fd: int | None = None
+
+
+def _real_stdout() -> bool:
+    """Whether ``sys.stdout`` is the process's fd 1 (not a test runner's buffer)."""
+    try:
+        return sys.stdout.fileno() == 1
+    except (AttributeError, OSError, ValueError):
+        return False
+
+
+@contextlib.contextmanager
+def json_stdout() -> Any:
+    """Send everything written to fd 1 to stderr meanwhile; :func:`emit` writes to the real stdout."""
+    global _json_fd
+    if not _real_stdout():
+        yield
+        return
+    sys.stdout.flush()
+    _json_fd = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(_json_fd, 1)
+        os.close(_json_fd)
+        _json_fd = None
+
+
 def handles_errors(func: F) -> F:
-    """Map qpscale exceptions to one line on stderr and an exit status."""
+    """Map qpscale exceptions to one line on stderr and an exit status; with ``--json``, keep
+    stdout for the JSON object alone (:func:`json_stdout`)."""
 
     @wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
+            if kwargs.get("as_json"):
+                with json_stdout():
+                    return func(*args, **kwargs)
             return func(*args, **kwargs)
         except InvalidDesign as exc:
             flag = FLAG_OF.get(exc.parameter, "--" + exc.parameter.replace("_", "-"))
@@ -81,7 +120,13 @@ def handles_errors(func: F) -> F:
 def emit(payload: dict[str, Any], as_json: bool, summary: Callable[[dict[str, Any]], None]) -> None:
     """Print ``payload`` as one JSON object, or a human summary of it."""
     if as_json:
-        sys.stdout.write(json.dumps(payload, allow_nan=False) + "\n")
+        text = json.dumps(payload, allow_nan=False) + "\n"
+        if _json_fd is not None:
+            data = memoryview(text.encode())
+            while data:  # a pipe may take a large payload in parts
+                data = data[os.write(_json_fd, data) :]
+        else:
+            sys.stdout.write(text)
     else:
         summary(payload)
 

@@ -78,3 +78,23 @@ def test_puncture_rejects_nonpositive_substrate_modulus_before_running(value):
     assert result.exit_code == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: --E-s")
+
+
+def test_json_stdout_holds_the_json_alone_whatever_a_c_library_prints(tmp_path):
+    # HiGHS prints a banner from C++ to fd 1; with --json that would corrupt the output scripts
+    # parse.  In a real process, bytes written to fd 1 during the command go to stderr and the
+    # JSON object (here 200 kB, more than a pipe takes at once) alone to stdout.
+    import subprocess
+    import sys
+
+    code = (
+        "import os\n"
+        "from qpscale.cli import json_stdout, emit\n"
+        "with json_stdout():\n"
+        "    os.write(1, b'Running HiGHS banner\\n')\n"
+        "    print('a python print')\n"
+        "    emit({'x': list(range(40000))}, True, None)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout) == {"x": list(range(40000))}
+    assert "Running HiGHS banner" in out.stderr and "a python print" in out.stderr
