@@ -215,7 +215,6 @@ class _Path:
         self.conservative = _checkable(setup)
         self.smooth_from = 0  # first state after the last jump (the curvature cap's window)
         self.unconfirmed = False  # an instability whose pushes found no lower energy (run)
-        self.fallbacks = 0  # levels solved with the feature rows after the planes failed (solve)
 
     def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> Equilibrium:
         """The equilibrium at depth ``delta`` from ``start``; ``descent``: by the plain fixed-point
@@ -250,30 +249,29 @@ class _Path:
                 fixed=self.fixed,
             )
         except SolverFailure as exc:
-            if not self._falls_back(exc):
+            if self.contact is None or self.contact.formulation != "plane":
                 raise
-        # The separating planes did not converge at this level: the feature rows (contact.md
-        # secs. 3-6), which have no plane unknowns to cycle, take this one level (sec. 2b).
-        assert self.contact is not None
-        self.fallbacks += 1
-        eq = solve_equilibrium(
-            self.patch,
-            self.K,
-            start.q,
-            self.load,
-            delta,
-            replace(self.contact, formulation="feature"),
-            self.sqp(descent),
-            increment=index,
-            previous=None,
-            fixed=self.fixed,
-        )
+            failed = exc
+        # The separating planes did not converge at this level (out of iterations, or a QP
+        # infeasible or inaccurate): the feature rows (contact.md secs. 3-6), which have no plane
+        # unknowns to cycle, take this one level (sec. 2b).  If they fail too, the planes' error
+        # is the level's.
+        try:
+            eq = solve_equilibrium(
+                self.patch,
+                self.K,
+                start.q,
+                self.load,
+                delta,
+                replace(self.contact, formulation="feature"),
+                self.sqp(descent),
+                increment=index,
+                previous=None,
+                fixed=self.fixed,
+            )
+        except SolverFailure:
+            raise failed from None
         return replace(eq, fallback=True)
-
-    def _falls_back(self, exc: SolverFailure) -> bool:
-        """Whether a failed level is retried with the feature rows (sec. 2b): any failure of the
-        plane formulation (out of iterations, or a QP infeasible or inaccurate)."""
-        return self.contact is not None and self.contact.formulation == "plane"
 
     def sqp(self, descent: bool = False) -> SQPSettings:
         """The SQP settings of this path: the plain iteration for a landing (``descent``), and no
