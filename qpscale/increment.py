@@ -153,7 +153,6 @@ class Equilibrium:
     build_s: float = 0.0
     solve_s: float = 0.0
     tightened: bool = False
-    fallback: bool = False
 
 
 def _stalled(steps: list[float]) -> bool:

@@ -152,39 +152,6 @@ def test_sqp_tolerances_follow_the_qp_accuracy(accuracy, step, pen):
         SQPSettings(step_tol=-1.0)
 
 
-def test_level_the_planes_cannot_converge_falls_back_to_feature_rows():
-    # A fuzz design (seed 1000, design 6) whose separating planes cycle at one load level: without
-    # the fallback the path halves its step until the fuzz's time limit.  With it, one level is
-    # solved with the feature rows and the path ends at phi_c; F_c does not depend on where the
-    # fallback level falls (4 and 32 target increments put it at states 1 and 7): same F_c to
-    # 1e-6 (measured 3e-9), and the exact overlap stays within 1e-9 L.
-    design = Design(
-        shape="triangle",
-        tiling="staggered",
-        slant_deg=41.901523914954424,
-        slant_dir_deg=45.0,
-        gap=0.0002888633811329533,
-        thickness=0.94663635392896,
-        rings=1,
-    )
-    fc = {}
-    for n in (4, 32):
-        setup = PunctureSetup(
-            design=design,
-            load_point=(0.600626167307942, 2.3553915179112654),
-            interaction="contact",
-            coupling=0.05379910883697381,
-            nu=0.2838343769210938,
-            probe=False,
-            increments=n,
-        )
-        res = run_puncture(setup)
-        assert any(st.fallback for st in res.states)
-        assert res.max_penetration <= 1e-9
-        fc[n] = res.Fc_star
-    assert fc[4] == pytest.approx(fc[32], rel=1e-6)
-
-
 @pytest.mark.slow
 def test_dart_tip_path_passes_where_no_extrapolated_step_converges():
     # The 5x5 dart at alpha0 = 60 deg loaded at its tip: near delta = 0.11392 the Anderson-

@@ -235,43 +235,18 @@ class _Path:
                 increment=index,
                 previous=start.contacts,
             )
-        try:
-            return solve_equilibrium(
-                self.patch,
-                self.K,
-                start.q,
-                self.load,
-                delta,
-                self.contact,  # type: ignore[arg-type]
-                self.sqp(descent),
-                increment=index,
-                previous=start.contacts,
-                fixed=self.fixed,
-            )
-        except SolverFailure as exc:
-            if self.contact is None or self.contact.formulation != "plane":
-                raise
-            failed = exc
-        # The separating planes did not converge at this level (out of iterations, or a QP
-        # infeasible or inaccurate): the feature rows (contact.md secs. 3-6), which have no plane
-        # unknowns to cycle, take this one level (sec. 2b).  If they fail too, the planes' error
-        # is the level's.
-        try:
-            eq = solve_equilibrium(
-                self.patch,
-                self.K,
-                start.q,
-                self.load,
-                delta,
-                replace(self.contact, formulation="feature"),
-                self.sqp(descent),
-                increment=index,
-                previous=None,
-                fixed=self.fixed,
-            )
-        except SolverFailure:
-            raise failed from None
-        return replace(eq, fallback=True)
+        return solve_equilibrium(
+            self.patch,
+            self.K,
+            start.q,
+            self.load,
+            delta,
+            self.contact,  # type: ignore[arg-type]
+            self.sqp(descent),
+            increment=index,
+            previous=start.contacts,
+            fixed=self.fixed,
+        )
 
     def sqp(self, descent: bool = False) -> SQPSettings:
         """The SQP settings of this path: the plain iteration for a landing (``descent``), and no
@@ -401,9 +376,6 @@ class _Path:
         the load supplied, which no quasi-static path reaches: the SQP leapt into a higher basin
         (seen on the 5x5 dart: a step of 1.4e-5 L to a state of 150 times the stored energy).
         """
-        if a.fallback or b.fallback:
-            # The feature rows' sticky axis dissipates ~1e-3 of the work (sec. 2b): no test.
-            return False
         return abs(self.released(a, b)) > SNAP_WORK * abs(_work(a, b))
 
     def run(self, states: list[Equilibrium] | None = None, step: float | None = None) -> list[Equilibrium]:
@@ -443,7 +415,7 @@ class _Path:
                 ceiling, step, landed = np.inf, resume, True
             else:
                 landed = False
-            sv = self.stability(eq) if self.check and not eq.fallback and not landed else None
+            sv = self.stability(eq) if self.check and not landed else None
             unstable = sv is not None and not sv.stable and not self.unconfirmed
             if sv is not None and sv.stable:
                 self.unconfirmed = False
