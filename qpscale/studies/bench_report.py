@@ -212,7 +212,8 @@ def fuzz(
     worst; the search over vertices would cost ~4x).  Each run has ``limit_s`` seconds of CPU
     time (wall time on a busy machine would fail runs for the machine's load); one over it is
     recorded as ``time limit``.  Chunks of :data:`FUZZ_CHUNK` designs are kept under
-    ``out/fuzz_chunks`` and not rerun.  Returns one row per (method, design); writes fuzz.csv.
+    ``out/fuzz_chunks`` and not rerun (delete them after changing the code).  Returns one row
+    per (method, design); writes fuzz.csv.
     """
     chunks = -(-n // FUZZ_CHUNK)
     others = chunks if n_others is None else -(-n_others // FUZZ_CHUNK)
@@ -239,7 +240,10 @@ def _fuzz_chunk(
 ) -> pd.DataFrame:
     """Designs ``first ... first + size - 1`` of the fuzz through ``method`` (a worker's task), or
     the chunk's CSV if an earlier run wrote it."""
-    path = cache / f"{method.name.replace(':', '_')}_{first:05d}_{size}_{seed}.csv"
+    # The name holds everything that defines the chunk but the code: after changing the puncture
+    # path, delete out/fuzz_chunks to measure the new code.
+    name = f"{method.name.replace(':', '_')}_{first:05d}_{size}_{seed}_n{increments}_t{limit_s}.csv"
+    path = cache / name
     if path.exists():
         return pd.read_csv(path)
     rng = np.random.default_rng(seed)
