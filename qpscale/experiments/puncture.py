@@ -419,9 +419,7 @@ class _Path:
             unstable = sv is not None and not sv.stable and not self.unconfirmed
             if sv is not None and sv.stable:
                 self.unconfirmed = False
-            if landed:
-                pass
-            elif unstable or (self.conservative and self.snapped(last, eq)):
+            if unstable or (self.conservative and not landed and self.snapped(last, eq)):
                 if step > SNAP_RESOLUTION * eq.delta:
                     if ceiling == np.inf:
                         resume = step

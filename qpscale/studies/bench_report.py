@@ -8,7 +8,7 @@ designs through the QP path.  Every chart has its CSV beside it.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +18,7 @@ from ..errors import InvalidDesign, QpscaleError
 from ..experiments.puncture import top_vertices
 from ..penalty import PenaltySettings
 from ..tiling import DESIGNS, Design
-from .bench import FC_TOL, BenchResult, Method, Reference, Run, Scene, run_method
+from .bench import FC_TOL, BenchResult, Method, Reference, Run, Scene, _setup, backend_overrides, run_method
 from .parallel import pmap
 
 FLOOR = 1e-16  # F_c errors are drawn at least at this value on the log axis
@@ -258,8 +258,7 @@ def _fuzz_design(rng: np.random.Generator, method: Method, increments: int, limi
     """One random design through ``method``: a row with its outcome and parameters."""
     import time
 
-    from ..experiments.puncture import PunctureSetup, run_puncture
-    from ..increment import SQPSettings
+    from ..experiments.puncture import run_puncture
     from ..timelimit import TimeLimitReached, time_limit
 
     t0 = time.perf_counter()
@@ -267,21 +266,13 @@ def _fuzz_design(rng: np.random.Generator, method: Method, increments: int, limi
     try:
         design, extra = random_design(rng)
         verts = top_vertices(design.patch())
-        xy = verts[int(rng.integers(len(verts)))]
-        extra["load_x"], extra["load_y"] = float(xy[0]), float(xy[1])
+        vertex = verts[int(rng.integers(len(verts)))]
+        xy = (float(vertex[0]), float(vertex[1]))
+        extra["load_x"], extra["load_y"] = xy
         params = {**asdict(design), **extra}
-        setup = PunctureSetup(
-            design=design,
-            load_point=(extra["load_x"], extra["load_y"]),
-            interaction="contact",
-            coupling=extra["coupling"],
-            nu=extra["nu"],
-            probe=False,
-            increments=increments,
-            sqp=SQPSettings(solver=method.solver, accuracy=method.accuracy),
-            penalty=method.penalty,
-        )
-        with time_limit(limit_s, clock="cpu"):
+        scene = Scene("fuzz", design, "contact", extra["coupling"], xy)
+        setup = replace(_setup(scene, replace(method, increments=increments), xy), nu=extra["nu"])
+        with time_limit(limit_s, clock="cpu"), backend_overrides(method.options):
             res = run_puncture(setup)
         pen_ok = not method.exact_contact or res.max_penetration <= method.penetration_tol
         row = {
