@@ -3,6 +3,8 @@
 Each subcommand prints a human summary, or one JSON object with ``--json``; field names
 follow the contract in SPEC.md.  Invalid input exits with status 2 and one line on stderr
 naming the parameter; a solver failure exits with status 3 and the solver's status.
+It implements no formulation: each command calls the module that does, which names its
+formulations/ file.
 """
 
 from __future__ import annotations
