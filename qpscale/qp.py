@@ -240,7 +240,15 @@ def _qpsolvers_opts(name: str, tol: float) -> dict[str, Any]:
             "eps_duality_gap_abs": t,
             "eps_duality_gap_rel": 0.0,
         },
-        "piqp": {"eps_abs": t, "eps_rel": 0.0, "eps_duality_gap_abs": t, "eps_duality_gap_rel": 0.0},
+        # the KKT systems of held-symmetric paths (face contacts, planes held mirror-symmetric) are
+        # ill-conditioned enough that PIQP's factorisation without refinement ran into NaN
+        "piqp": {
+            "eps_abs": t,
+            "eps_rel": 0.0,
+            "eps_duality_gap_abs": t,
+            "eps_duality_gap_rel": 0.0,
+            "iterative_refinement_always_enabled": True,
+        },
         "qpalm": {"eps_abs": t, "eps_rel": 0.0},
         "scs": {"eps_abs": t, "eps_rel": 0.0},
         # CVXOPT stops on the absolute OR relative gap; the relative one scales with |objective|
