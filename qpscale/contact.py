@@ -22,6 +22,7 @@ from .contact_plane import SIDE_B, Planes, plane_rows
 from .contact_sat import World, bodies_of, place, separate
 from .errors import InvalidDesign
 from .geometry import Array, tangent_operators
+from .mirror import Mirror
 from .tiling import Patch
 
 MODES = ("full", "vertex")
@@ -203,6 +204,7 @@ def detect_contacts(
     pairs: np.ndarray | None = None,
     previous: ContactSet | None = None,
     refresh: float | None = None,
+    mirror: Mirror | None = None,
 ) -> ContactSet:
     """Contact points of every candidate pair closer than ``settings.margin`` (section 3).
 
@@ -221,6 +223,8 @@ def detect_contacts(
     refresh : float, optional
         Plane formulation: pairs overlapping by more than this (L) restart their plane from the
         best separating axis (sec. 7).
+    mirror : Mirror, optional
+        Plane formulation on a symmetric path: the planes are held mirror-symmetric (sec. 8).
 
     Returns
     -------
@@ -243,7 +247,8 @@ def detect_contacts(
     active = sat.sep < settings.margin
     if settings.formulation == "plane":
         memory = previous.plane_memory if previous is not None else None
-        return _plane_set(world, q, sat, plane_rows(world, sat, active, settings.margin, memory, refresh))
+        rows = plane_rows(world, sat, active, settings.margin, memory, refresh, mirror)
+        return _plane_set(world, q, sat, rows)
     best_face = np.maximum(sat.face_a.max(axis=1), sat.face_b.max(axis=1))
     best_edge = sat.edge.reshape(len(sat.sep), -1).max(axis=1)
     use_edge = _choose_edge(sat, best_face, best_edge, previous, settings)

@@ -18,6 +18,7 @@ import numpy as np
 
 from .contact_sat import SAT, World
 from .geometry import Array
+from .mirror import Mirror
 
 # Vertex of the piece facing the plane's positive side (b) and of the one behind it (a).
 SIDE_B, SIDE_A = 1, -1
@@ -106,6 +107,7 @@ def plane_rows(
     margin: float,
     memory: dict[tuple[int, int, int, int], tuple[Array, Array]] | None,
     refresh: float | None = None,
+    mirror: Mirror | None = None,
 ) -> PlaneRows:
     """Planes of the active piece pairs and the vertex rows within ``margin`` of them.
 
@@ -118,6 +120,8 @@ def plane_rows(
     sequential QP then stalls with the overlap), and the best axis is the shortest way out.  So
     does a remembered plane that separates the pieces worse than their best axis by more than
     ``margin`` (stale: the increment QP cannot rotate it far enough and becomes infeasible).
+    With ``mirror`` (a symmetric path, sec. 8) a plane restarts together with its image, and every
+    plane is replaced by the mean of itself and its partner's image before the rows are taken.
     """
     rows = np.flatnonzero(active)
     keys = [(int(sat.a[k]), int(sat.pa[k]), int(sat.b[k]), int(sat.pb[k])) for k in rows]
@@ -128,6 +132,7 @@ def plane_rows(
     p = h[:, None] * n
     memory = memory or {}
     overlapping = sat.sep[rows] < -refresh if refresh is not None else np.zeros(len(rows), dtype=bool)
+    kept = np.zeros(len(rows), dtype=bool)
     for j, key in enumerate(keys):
         if key in memory and not overlapping[j]:
             nm, pm = memory[key]
@@ -136,8 +141,13 @@ def plane_rows(
             # of its linearised rotation reaches a separating position, and the QP would be
             # infeasible.  It restarts from the best axis (contact.md sec. 7).
             worst = min(float(np.min((pm - VA[j]) @ nm)), float(np.min((VB[j] - pm) @ nm)))
-            if worst >= sat.sep[rows[j]] - margin:
-                n[j], p[j] = nm, pm
+            kept[j] = worst >= sat.sep[rows[j]] - margin
+    if mirror is not None:
+        kept = ~mirror.orbit_any(keys, ~kept)
+    for k in np.flatnonzero(kept):
+        n[k], p[k] = memory[keys[k]]
+    if mirror is not None:
+        n, p = mirror.symmetrise(keys, n, p)
     ga = np.einsum("pk,pvk->pv", n, p[:, None, :] - VA)
     gb = np.einsum("pk,pvk->pv", n, VB - p[:, None, :])
     near_a, near_b = ga < margin, gb < margin

@@ -17,6 +17,7 @@ import scipy.sparse as sp
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from .errors import InvalidDesign, SolverFailure
 from .geometry import rotation_matrix, tangent_operator
+from .mirror import Mirror
 from .qp import IncrementQP, resolve_tolerance
 from .solvers import solve_qp
 from .tiling import Patch
@@ -198,15 +199,35 @@ def assemble_increment(
     )
 
 
-def _with_fixed(qp: IncrementQP, fixed: np.ndarray, q: np.ndarray) -> IncrementQP:
-    """Append the rows fixed @ (q + dq) = 0 to the equalities of ``qp``."""
-    pad = sp.csc_matrix((fixed.shape[0], qp.n - fixed.shape[1]))
-    rows = sp.hstack([sp.csc_matrix(fixed), pad], format="csc")
-    A = sp.vstack([qp.A, rows], format="csc")
-    b = np.r_[qp.b, -fixed @ q.reshape(-1)]
-    labels = tuple(qp.row_labels_A or ("load",)) + tuple(f"fixed{i}" for i in range(fixed.shape[0]))
+def _with_mirror(qp: IncrementQP, mirror: Mirror, q: np.ndarray, cs: ContactSet | None) -> IncrementQP:
+    """Append the equalities that hold the path on its symmetric branch (sec. 2, Held symmetry).
+
+    ``mirror.dof_rows @ (q + dq) = 0`` keeps the configuration symmetric; with separating planes
+    (symmetric at the linearisation, contact.md sec. 8) the rows of ``Mirror.plane_rows`` map
+    each plane's increment onto its partner's.
+    """
+    D = mirror.dof_rows
+    blocks = [sp.hstack([sp.csc_matrix(D), sp.csc_matrix((D.shape[0], qp.n - D.shape[1]))], format="csc")]
+    rhs = [-D @ q.reshape(-1)]
+    labels = [f"sym{i}" for i in range(D.shape[0])]
+    if cs is not None and cs.planes is not None and cs.planes.count:
+        planes = cs.planes
+        rows = mirror.plane_rows(planes.keys, planes.normal, planes.point, planes.basis)
+        if len(rows):
+            pad = sp.csc_matrix((len(rows), D.shape[1]))
+            blocks.append(sp.hstack([pad, sp.csc_matrix(rows)], format="csc"))
+            rhs.append(np.zeros(len(rows)))
+            labels += [f"symplane{i}" for i in range(len(rows))]
+    A = sp.vstack([qp.A, *blocks], format="csc")
     return IncrementQP(
-        P=qp.P, q=qp.q, G=qp.G, h=qp.h, A=A, b=b, row_labels_G=qp.row_labels_G, row_labels_A=labels
+        P=qp.P,
+        q=qp.q,
+        G=qp.G,
+        h=qp.h,
+        A=A,
+        b=np.concatenate([qp.b, *rhs]),
+        row_labels_G=qp.row_labels_G,
+        row_labels_A=tuple(qp.row_labels_A or ("load",)) + tuple(labels),
     )
 
 
@@ -304,7 +325,11 @@ class PlaneDamping:
 
 
 def _pinned_only(
-    theta: np.ndarray, cs: ContactSet, lam: np.ndarray | None, violated: bool = False
+    theta: np.ndarray,
+    cs: ContactSet,
+    lam: np.ndarray | None,
+    violated: bool = False,
+    mirror: Mirror | None = None,
 ) -> np.ndarray:
     """Plane unknowns with those of free planes set to zero (their QP optimum).
 
@@ -314,6 +339,7 @@ def _pinned_only(
     violated row (the pieces have moved through where it was) must move to separate them, and
     keeps its step: zeroed, it stayed where it was, violated by up to 0.5 L after many increments,
     and every QP moved it again at the price of multipliers ``PLANE_PROX`` times its travel.
+    With ``mirror`` a plane is free only if its partner is too (a symmetric step stays symmetric).
     """
     if lam is None:
         return theta
@@ -322,6 +348,8 @@ def _pinned_only(
     pressed = (lam > floor) | (np.asarray(cs.gap) < 0.0) if violated else lam > floor
     on = pressed & (cs.plane >= 0)
     carried[np.unique(cs.plane[on])] = True
+    if mirror is not None and cs.planes is not None:
+        carried = mirror.orbit_any(cs.planes.keys, carried)
     return np.where(np.repeat(carried, 3), theta, 0.0)
 
 
@@ -358,7 +386,7 @@ def solve_equilibrium(
     settings: SQPSettings,
     increment: int | None = None,
     previous: ContactSet | None = None,
-    fixed: np.ndarray | None = None,
+    mirror: Mirror | None = None,
 ) -> Equilibrium:
     """Sequential QP at a fixed load level, eqs. (5)-(7).
 
@@ -367,9 +395,9 @@ def solve_equilibrium(
     below ``step_tol``; then the exact penetration must be below ``penetration_tol``.
     ``previous`` (the contact set of the starting state) carries the separating planes (or,
     for the feature formulation, keeps each pair's axis sticky, formulations/contact.md sec. 6).
-    ``fixed`` ``(r, 5 n)``: extra linear constraints fixed @ q = 0 on the configuration (e.g. the
-    antisymmetric modes of a mirror symmetry, to follow a symmetric branch).  While the contact rows stay
-    the same, the iterates are Anderson-accelerated (sec. 4).
+    ``mirror`` holds the path on the symmetric branch of that reflection: the antisymmetric DOF
+    modes stay zero and the separating planes mirror-symmetric (sec. 2, Held symmetry).  While the
+    contact rows stay the same, the iterates are Anderson-accelerated (sec. 4).
 
     Raises
     ------
@@ -389,13 +417,17 @@ def solve_equilibrium(
     tighten_tried = False
     for it in range(1, settings.max_iter + 1):
         t0 = time.perf_counter()
-        cs = detect_contacts(patch, q, contact, previous=cs, refresh=refresh) if contact is not None else None
+        cs = (
+            detect_contacts(patch, q, contact, previous=cs, refresh=refresh, mirror=mirror)
+            if contact is not None
+            else None
+        )
         refresh = None
         J = gap_jacobian(cs, patch, q) if cs is not None and len(cs.gap) else None
         weight = damping.weights(cs) if settings.plane_damping and cs is not None and cs.n_extra else None
         qp = assemble_increment(K, q, load, delta, cs, J, weight)
-        if fixed is not None and len(fixed):
-            qp = _with_fixed(qp, fixed, q)
+        if mirror is not None:
+            qp = _with_mirror(qp, mirror, q, cs)
         build_s += time.perf_counter() - t0
         try:
             res = solve_qp(qp, solver=settings.solver, accuracy=accuracy, check=True)
@@ -412,7 +444,7 @@ def solve_equilibrium(
         dq = res.x[: q.size].reshape(q.shape)
         theta = res.x[q.size :]
         if cs is not None and cs.planes is not None and len(theta):
-            theta = _pinned_only(theta, cs, res.z, violated=settings.plane_damping)
+            theta = _pinned_only(theta, cs, res.z, violated=settings.plane_damping, mirror=mirror)
             cs = replace(cs, plane_memory=cs.planes.advanced(theta))
             if settings.plane_damping:
                 damping.update(cs, theta, np.asarray(res.z))

@@ -20,10 +20,11 @@ from ..contact import ContactSettings
 from ..errors import InvalidDesign, SolverFailure
 from ..geometry import tilt
 from ..increment import Equilibrium, LoadPoint, SQPSettings, solve_equilibrium
+from ..mirror import Mirror, map_dofs
 from ..stability import Stability, second_variation
 from ..substrate import SubstrateModel, stiffness_matrix
 from ..tiling import Design, Patch
-from .symmetry import antisymmetric_rows, map_dofs, mirror_through, vertex_orbits
+from .symmetry import mirror_through, vertex_orbits
 
 log = logging.getLogger(__name__)
 
@@ -191,8 +192,9 @@ TILT_LOCATED = 1e-6
 class _Path:
     """State of one loading path: the solver closure, counters, events.
 
-    ``fixed`` (antisymmetric DOF rows) holds the path on a symmetric branch; ``check`` runs the
-    second-variation test on every converged state (formulations/puncture.md sec. 4).
+    ``mirror`` holds the path on the symmetric branch of that reflection (configuration and
+    separating planes); ``check`` runs the second-variation test on every converged state
+    (formulations/puncture.md sec. 4).
     """
 
     def __init__(
@@ -201,7 +203,7 @@ class _Path:
         patch: Patch,
         K: object,
         load: LoadPoint,
-        fixed: np.ndarray | None = None,
+        mirror: Mirror | None = None,
         check: bool = False,
     ) -> None:
         self.setup, self.patch, self.K, self.load = setup, patch, K, load
@@ -209,7 +211,7 @@ class _Path:
         self.phi_c = np.deg2rad(setup.phi_c_deg)
         self.solves = 0
         self.events: list[dict] = []
-        self.fixed, self.check = fixed, check
+        self.mirror, self.check = mirror, check
         # The energy balance that locates jumps holds for exact frictionless contact only (the
         # feature rows' sticky axis and the penalty dissipate ~1e-3 of the work).
         self.conservative = _checkable(setup)
@@ -245,16 +247,16 @@ class _Path:
             self.sqp(descent),
             increment=index,
             previous=start.contacts,
-            fixed=self.fixed,
+            mirror=self.mirror,
         )
 
     def sqp(self, descent: bool = False) -> SQPSettings:
         """The SQP settings of this path: the plain iteration for a landing (``descent``), and no
-        plane damping on a held-symmetry path, where the held DOFs carry whatever asymmetric force
-        a plane turned about its hinge leaves, so that its orientation is not fixed by equilibrium
-        and the damped iteration's history decides it (increment.md sec. 4b)."""
+        plane damping on a held-symmetry path: it moves no converged state, but a fold located
+        with it depended on the step (1.4e-5 over 6-30 increments against 4e-7 without,
+        formulations/puncture.md sec. 4)."""
         settings = self.setup.sqp
-        if self.fixed is not None:
+        if self.mirror is not None:
             settings = replace(settings, plane_damping=False)
         if descent:
             settings = replace(settings, anderson_depth=0, max_iter=LANDING_MAX_ITER)
@@ -297,10 +299,10 @@ class _Path:
     def breaks_symmetry(self, sv: Stability) -> bool:
         """On a symmetric path: the unstable mode is mostly antisymmetric (a bifurcation off the
         branch) rather than symmetric (a fold of the branch itself, crossed by a snap)."""
-        if self.fixed is None:
+        if self.mirror is None:
             return False
         mode = sv.mode.ravel()
-        return bool(np.linalg.norm(self.fixed @ mode) ** 2 > 0.5 * float(mode @ mode))
+        return bool(np.linalg.norm(self.mirror.dof_rows @ mode) ** 2 > 0.5 * float(mode @ mode))
 
     def tilt_of(self, eq: Equilibrium) -> float:
         return tilt(eq.q[self.load.scale, 3:5])
@@ -385,7 +387,7 @@ class _Path:
         (``ceiling``: the depth of the last such step) until the event is located within
         ``SNAP_RESOLUTION``; the path then leaves its branch (the jump's landing state, or the
         unstable state pushed along its mode), and a landing past phi_c is the failure (sec. 3-4).
-        On a symmetric path (``fixed``) a located instability raises ``_Unstable`` instead.
+        On a symmetric path (``mirror``) a located instability raises ``_Unstable`` instead.
         """
         states = list(states) if states else [self.origin()]
         step = step if step is not None else self.first_step(states[0])
@@ -612,7 +614,7 @@ def _symmetric_point(
     fails the second-variation test (located by the path's bisection); the path then continues,
     unconstrained, from the state pushed along the unstable mode to a fixed side."""
     M, perm = mirror
-    sym = _Path(setup, patch, K, load, fixed=antisymmetric_rows(patch.n_scales, M, perm), check=True)
+    sym = _Path(setup, patch, K, load, mirror=Mirror.of(patch, M, perm), check=True)
     info: dict = {"check": "second variation", "mirror": True}
     try:
         states = sym.run()

@@ -12,7 +12,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..mirror import antisymmetric_rows, map_dofs
 from ..tiling import Patch
+
+__all__ = ["antisymmetric_rows", "map_dofs", "mirror_through", "patch_symmetries", "vertex_orbits"]
 
 _TOL = 1e-6
 
@@ -80,23 +83,3 @@ def mirror_through(patch: Patch, point: np.ndarray) -> tuple[np.ndarray, np.ndar
         if np.linalg.det(M) < 0 and np.linalg.norm(M @ point - point) < _TOL:
             return M, perm
     return None
-
-
-def map_dofs(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
-    """Image ``(n, 5)`` of the configuration q under the symmetry (M, perm)."""
-    out = np.empty_like(q)
-    out[perm, :2] = q[:, :2] @ M.T
-    out[perm, 2] = q[:, 2]
-    out[perm, 3:5] = np.linalg.det(M) * (q[:, 3:5] @ M.T)
-    return out
-
-
-def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
-    """Rows ``(r, 5 n)`` spanning the DOF modes the reflection (M, perm) reverses.
-
-    A configuration is mirror-symmetric exactly when these rows annihilate it; imposed as
-    equalities in the increment QP they hold a path on its symmetric branch.
-    """
-    S = np.column_stack([map_dofs(e.reshape(n, 5), M, perm).ravel() for e in np.eye(5 * n)])
-    w, V = np.linalg.eigh(0.5 * (S + S.T))
-    return np.ascontiguousarray(V[:, w < 0].T)

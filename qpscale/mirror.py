@@ -1,0 +1,192 @@
+"""A mirror symmetry held on a loading path: the DOF modes it reverses and the separating planes' images.
+
+Implements formulations/contact.md section 8, eqs. (25)-(28), used by formulations/puncture.md
+section 4.  A reflection of the patch about a vertical plane through the punctured scale's
+reference point maps every scale onto a scale, every convex piece onto a piece, and so every
+separating plane of a piece pair onto the separating plane of the image pair.  Holding a path on
+its symmetric branch means holding both: the configuration (the antisymmetric DOF modes vanish)
+and the planes (each plane is the image of its partner).  Planes left free turn asymmetrically
+about their hinges, and the rows that hold the configuration then carry the difference of the
+contact forces.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .contact_sat import bodies_of
+from .geometry import Array
+from .tiling import Patch
+
+# Vertices of a piece and of its image must coincide to this, in L.
+_MATCH_TOL = 1e-6
+# Singular values of a plane orbit's equality rows below this are dependent rows, dropped.
+_RANK_TOL = 1e-9
+
+PlaneKey = tuple[int, int, int, int]
+
+
+def map_dofs(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """Image ``(n, 5)`` of the configuration q under the symmetry (M, perm)."""
+    out = np.empty_like(q)
+    out[perm, :2] = q[:, :2] @ M.T
+    out[perm, 2] = q[:, 2]
+    out[perm, 3:5] = np.linalg.det(M) * (q[:, 3:5] @ M.T)
+    return out
+
+
+def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """Rows ``(r, 5 n)`` spanning the DOF modes the reflection (M, perm) reverses.
+
+    A configuration is mirror-symmetric exactly when these rows annihilate it; imposed as
+    equalities in the increment QP they hold a path on its symmetric branch.
+    """
+    S = np.column_stack([map_dofs(e.reshape(n, 5), M, perm).ravel() for e in np.eye(5 * n)])
+    w, V = np.linalg.eigh(0.5 * (S + S.T))
+    return np.ascontiguousarray(V[:, w < 0].T)
+
+
+def _piece_images(patch: Patch, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """``(n, P)``: the piece of scale ``perm[i]`` that piece ``p`` of scale ``i`` maps onto."""
+    bodies = bodies_of(patch)
+    n, n_pieces = bodies.verts.shape[:2]
+    c0 = patch.centroids[0]
+    placed = bodies.verts.copy()
+    placed[..., :2] += (patch.centroids - c0)[:, None, None, :]
+    out = np.empty((n, n_pieces), dtype=int)
+    for i in range(n):
+        for p in range(n_pieces):
+            image = placed[i, p].copy()
+            image[:, :2] = image[:, :2] @ M.T
+            # distance from each image vertex to the nearest vertex of each candidate piece
+            d = np.linalg.norm(image[None, :, None, :] - placed[perm[i]][:, None, :, :], axis=-1)
+            worst = d.min(axis=2).max(axis=1)
+            out[i, p] = int(np.argmin(worst))
+            if worst[out[i, p]] > _MATCH_TOL:
+                raise ValueError(f"piece {p} of scale {i} has no image under the reflection")
+    return out
+
+
+@dataclass(frozen=True)
+class Mirror:
+    """A reflection symmetry of a patch, as held on a symmetric path.
+
+    Attributes
+    ----------
+    M : ndarray (2, 2)
+        The reflection of the plane (det -1).
+    perm : ndarray (n,) of int
+        ``perm[i]``: the scale that scale ``i`` maps onto.
+    pieces : ndarray (n, P) of int
+        ``pieces[i, p]``: the piece of scale ``perm[i]`` that piece ``p`` of scale ``i`` maps onto.
+    centre : ndarray (3,)
+        A point of the mirror plane: scale 0's reference point, in L.
+    dof_rows : ndarray (r, 5 n)
+        Orthonormal rows spanning the antisymmetric DOF modes.
+    """
+
+    M: Array
+    perm: np.ndarray
+    pieces: np.ndarray
+    centre: Array
+    dof_rows: Array
+
+    @classmethod
+    def of(cls, patch: Patch, M: np.ndarray, perm: np.ndarray) -> Mirror:
+        """The reflection ``(M, perm)`` of ``patch`` (from ``experiments.symmetry.mirror_through``)."""
+        return cls(
+            np.asarray(M, dtype=float),
+            np.asarray(perm, dtype=int),
+            _piece_images(patch, M, perm),
+            np.r_[patch.centroids[0], 0.0],
+            antisymmetric_rows(patch.n_scales, M, perm),
+        )
+
+    @property
+    def M3(self) -> Array:
+        """The reflection in space: M on (x, y), z unchanged."""
+        out = np.eye(3)
+        out[:2, :2] = self.M
+        return out
+
+    def plane_images(self, keys: Sequence[PlaneKey]) -> tuple[np.ndarray, np.ndarray]:
+        """Index of each plane's image among ``keys`` (-1 if absent) and its orientation s.
+
+        The image of the pair (a, pa, b, pb) is the pair of the images; keys are ordered a < b,
+        so when the images come in the other order the plane's normal (from a to b) maps onto
+        minus the image's: s = -1, eq. (25).
+        """
+        index = {k: j for j, k in enumerate(keys)}
+        image = np.full(len(keys), -1, dtype=int)
+        sign = np.ones(len(keys))
+        for j, (a, pa, b, pb) in enumerate(keys):
+            ia, ib = int(self.perm[a]), int(self.perm[b])
+            ka, kb = int(self.pieces[a, pa]), int(self.pieces[b, pb])
+            key, s = ((ia, ka, ib, kb), 1.0) if ia < ib else ((ib, kb, ia, ka), -1.0)
+            image[j] = index.get(key, -1)
+            sign[j] = s
+        return image, sign
+
+    def symmetrise(self, keys: Sequence[PlaneKey], normal: Array, point: Array) -> tuple[Array, Array]:
+        """Planes ``(P, 3)`` replaced by the mean of themselves and their partners' images, eq. (26).
+
+        The result is exactly symmetric (the reflection is an involution).  A plane whose image
+        is not among ``keys`` (its partner lies just outside the margin) is kept as it is.
+        """
+        image, sign = self.plane_images(keys)
+        n, p = normal.copy(), point.copy()
+        R, c = self.M3, self.centre
+        for j in np.flatnonzero(image >= 0):
+            i = image[j]
+            mean = 0.5 * (normal[j] + sign[i] * R @ normal[i])
+            size = np.linalg.norm(mean)
+            if size < 0.5:  # a plane and its image's image disagree by over 120 deg: keep it
+                continue
+            n[j] = mean / size
+            p[j] = 0.5 * (point[j] + c + R @ (point[i] - c))
+        return n, p
+
+    def plane_rows(self, keys: Sequence[PlaneKey], normal: Array, point: Array, basis: Array) -> Array:
+        """Equality rows ``(r, 3 P)`` on the plane unknowns that keep symmetric planes symmetric.
+
+        Eq. (27): the image of plane j's increment is plane j*'s increment, for the two rotations
+        ``t`` and the shift ``sigma`` of each plane (order t1, t2, sigma).  One orbit (a pair of
+        planes, or one plane that is its own image) gives its rows at once, reduced to an
+        orthonormal independent set (a plane on the mirror keeps one rotation free).
+        """
+        image, sign = self.plane_images(keys)
+        R, c = self.M3, self.centre
+        rows: list[Array] = []
+        for j in range(len(keys)):
+            i = image[j]
+            if i < j:  # absent, or its orbit was done from the other plane
+                continue
+            s = sign[j]
+            A = s * basis[i].T @ R @ basis[j]  # t_i = A t_j
+            block = np.zeros((3, 3 * len(keys)))
+            block[:2, 3 * i : 3 * i + 2] += np.eye(2)
+            block[:2, 3 * j : 3 * j + 2] -= A
+            # offset about the centre o_k = n_k . (p_k - c), its increment sigma_k + (E_k t_k) . (p_k - c)
+            lever_j, lever_i = basis[j].T @ (point[j] - c), basis[i].T @ (point[i] - c)
+            block[2, 3 * i + 2] += 1.0
+            block[2, 3 * i : 3 * i + 2] += lever_i
+            block[2, 3 * j + 2] -= s
+            block[2, 3 * j : 3 * j + 2] -= s * lever_j
+            cols = np.unique([3 * i, 3 * i + 1, 3 * i + 2, 3 * j, 3 * j + 1, 3 * j + 2])
+            _, sv, Vt = np.linalg.svd(block[:, cols], full_matrices=False)
+            for k in np.flatnonzero(sv > _RANK_TOL * max(1.0, sv[0])):
+                row = np.zeros(3 * len(keys))
+                row[cols] = Vt[k]
+                rows.append(row)
+        return np.array(rows).reshape(-1, 3 * len(keys))
+
+    def orbit_any(self, keys: Sequence[PlaneKey], flags: np.ndarray) -> np.ndarray:
+        """``flags`` (P,) or-ed with their partners': a decision made for a whole orbit."""
+        image, _ = self.plane_images(keys)
+        out = np.asarray(flags, dtype=bool).copy()
+        has = image >= 0
+        out[has] |= flags[image[has]]
+        return out

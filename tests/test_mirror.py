@@ -1,0 +1,122 @@
+"""A path held symmetric: formulations/contact.md section 8 (qpscale/mirror.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from qpscale import Design
+from qpscale.contact import detect_contacts
+from qpscale.experiments.puncture import PunctureSetup, _load_point, _Path, _predict, build_model
+from qpscale.experiments.symmetry import map_dofs, mirror_through, patch_symmetries
+from qpscale.increment import SQPSettings, solve_equilibrium
+from qpscale.mirror import Mirror
+
+CORNER = np.array([1.0, 1.0])  # a corner of the 3x3 square's loaded scale: on the diagonal mirror
+
+
+@pytest.fixture(scope="module")
+def corner():
+    setup = PunctureSetup(design=Design(rings=1), load_point=tuple(CORNER))
+    patch, K = build_model(setup)
+    M, perm = mirror_through(patch, CORNER)
+    return setup, patch, K, Mirror.of(patch, M, perm)
+
+
+def _symmetric_q(patch, mirror, seed=3):
+    """A small mirror-symmetric configuration: the mean of a random one and its image."""
+    q = 1e-3 * np.random.default_rng(seed).standard_normal((patch.n_scales, 5))
+    return 0.5 * (q + map_dofs(q, mirror.M, mirror.perm))
+
+
+def _asymmetry(mirror, planes) -> float:
+    """Largest |nu_j* - s M nu_j| and offset mismatch over the planes whose image is present, eq. (25)."""
+    image, sign = mirror.plane_images(planes.keys)
+    R, c = mirror.M3, mirror.centre
+    worst = 0.0
+    for j in np.flatnonzero(image >= 0):
+        i = image[j]
+        worst = max(worst, float(np.max(np.abs(planes.normal[i] - sign[j] * R @ planes.normal[j]))))
+        offset_j = planes.normal[j] @ (planes.point[j] - c)
+        worst = max(worst, abs(planes.normal[i] @ (planes.point[i] - c) - sign[j] * offset_j))
+    return worst
+
+
+def test_plane_images_are_an_involution(corner):
+    _, patch, _, mirror = corner
+    cs = detect_contacts(patch, _symmetric_q(patch, mirror), mirror=mirror)
+    image, sign = mirror.plane_images(cs.planes.keys)
+    assert np.all(image >= 0)  # at a symmetric configuration every near pair's image is near too
+    assert np.array_equal(image[image], np.arange(len(image)))
+    assert np.array_equal(sign[image], sign)
+    assert np.any(image == np.arange(len(image)))  # planes on the mirror (the diagonal neighbours)
+    # eq. (26): the symmetrised linearisation is symmetric to round-off
+    assert _asymmetry(mirror, cs.planes) < 1e-12
+
+
+def test_unsymmetrised_planes_are_not_symmetric(corner):
+    # The defect sec. 8 removes: without the mirror, planes start from best axes that tie on the
+    # diagonal neighbours' corners and are not mirror images of each other.
+    _, patch, _, mirror = corner
+    q = _symmetric_q(patch, mirror)
+    assert _asymmetry(mirror, detect_contacts(patch, q).planes) > 1e-3
+
+
+def test_increments_obeying_the_rows_keep_the_planes_symmetric(corner):
+    # Eq. (27) is exact, not only first order: with t_j* = s E_j*' M E_j t_j the new normals are
+    # exact images, and the offsets follow with sigma_j* = s sigma_j.  Any increment in the null
+    # space of the rows, applied by Planes.advanced (eq. (22)), keeps the planes symmetric.
+    _, patch, _, mirror = corner
+    planes = detect_contacts(patch, _symmetric_q(patch, mirror), mirror=mirror).planes
+    rows = mirror.plane_rows(planes.keys, planes.normal, planes.point, planes.basis)
+    assert np.allclose(rows @ rows.T, np.eye(len(rows)), atol=1e-12)  # orthonormal, independent
+    z = 1e-2 * np.random.default_rng(0).standard_normal(3 * planes.count)
+    z -= rows.T @ (rows @ z)
+    moved = planes.advanced(z)
+    keys = list(planes.keys)
+    normal = np.array([moved[k][0] for k in keys])
+    point = np.array([moved[k][1] for k in keys])
+    assert _asymmetry(mirror, type(planes)(planes.keys, normal, point, planes.basis)) < 1e-12
+    # and a generic increment does not (the rows are not vacuous)
+    z = 1e-2 * np.random.default_rng(1).standard_normal(3 * planes.count)
+    moved = planes.advanced(z)
+    normal = np.array([moved[k][0] for k in keys])
+    point = np.array([moved[k][1] for k in keys])
+    assert _asymmetry(mirror, type(planes)(planes.keys, normal, point, planes.basis)) > 1e-4
+
+
+def test_a_held_state_is_an_equilibrium_of_the_free_problem(corner):
+    # Symmetric criticality (eq. (28)): with the planes held symmetric, the rows holding the
+    # configuration carry nothing, so the held state is an equilibrium without them.  Independent
+    # check: the free sequential QP started from the held state (its planes included) must stop at
+    # once on the same state.  Tolerances: F to 1e-8 relative, q to 1e-7 (step test |dq| <= 1e-8).
+    # The depths lie before the branch point (0.0845): the held state is also stable there.
+    setup, patch, K, mirror = corner
+    load = _load_point(patch, CORNER)
+    path = _Path(setup, patch, K, load, mirror=mirror)
+    states = [path.origin()]
+    for delta in (0.02, 0.04, 0.06, 0.08):
+        states.append(path.solve(_predict(states, delta), delta, len(states)))
+    for held in states[1:]:
+        assert np.max(np.abs(held.q - map_dofs(held.q, mirror.M, mirror.perm))) < 1e-12
+        free = solve_equilibrium(
+            patch, K, held.q, load, held.delta, setup.contact, SQPSettings(), previous=held.contacts
+        )
+        assert free.iterations <= 2
+        assert free.F == pytest.approx(held.F, rel=1e-8)
+        assert np.max(np.abs(free.q - held.q)) < 1e-7
+
+
+def test_piece_images_swap_the_darts_pieces():
+    # The dart is cut along its own axis into two convex pieces (geometry.md): the mirror through
+    # the loaded dart's axis maps each of its pieces onto the other, and the image of a piece's
+    # vertices under M is the other piece's vertex set (checked here directly, without the map).
+    patch = Design(shape="dart", rings=1).patch()
+    mirrors = [(M, perm) for M, perm in patch_symmetries(patch) if np.linalg.det(M) < 0]
+    assert mirrors, "the flat dart array has a mirror through the loaded scale"
+    mirror = Mirror.of(patch, *mirrors[0])
+    assert mirror.pieces[0].tolist() == [1, 0]
+    a, b = (p.vertices for p in patch.convex_prisms(0))
+    image = a.copy()
+    image[:, :2] = a[:, :2] @ mirror.M.T
+    assert np.max(np.min(np.linalg.norm(image[:, None] - b[None], axis=2), axis=1)) < 1e-12
