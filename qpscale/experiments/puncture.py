@@ -237,6 +237,22 @@ class _Path:
                 increment=index,
                 previous=start.contacts,
             )
+        settings = self.sqp(descent)
+        try:
+            return self._sqp_solve(start, delta, index, settings)
+        except SolverFailure as failure:
+            # The other plane update (sec. 4b of increment.md): the undamped iteration can cycle
+            # on a hinged plane, the damped one can creep where a plane must travel far; a level
+            # that converges either way has the same fixed point.
+            other = replace(settings, plane_damping=not settings.plane_damping)
+            try:
+                eq = self._sqp_solve(start, delta, index, other)
+            except SolverFailure:
+                raise failure from None
+            self.events.append({"kind": "plane_damping", "delta": delta, "damped": other.plane_damping})
+            return eq
+
+    def _sqp_solve(self, start: Equilibrium, delta: float, index: int, settings: SQPSettings) -> Equilibrium:
         return solve_equilibrium(
             self.patch,
             self.K,
@@ -244,7 +260,7 @@ class _Path:
             self.load,
             delta,
             self.contact,  # type: ignore[arg-type]
-            self.sqp(descent),
+            settings,
             increment=index,
             previous=start.contacts,
             mirror=self.mirror,
