@@ -106,7 +106,9 @@ class SQPSettings:
     plane_damping : bool
         Weight each pressed separating plane's rotation by the force it carries and let planes
         with violated rows move (``PlaneDamping``, sec. 4b): cures the hinge 2-cycle of nearly
-        parallel edges.  Converged states are the same with it off.
+        parallel edges, but creeps where a plane has far to travel.  Converged states are the
+        same either way; off by default, and the puncture path solves a level that fails with
+        one setting again with the other (puncture.md sec. 2).
     """
 
     solver: str = "clarabel"
@@ -115,7 +117,7 @@ class SQPSettings:
     penetration_tol: float = 0.0
     max_iter: int = 60
     anderson_depth: int = 5
-    plane_damping: bool = True
+    plane_damping: bool = False
 
     def __post_init__(self) -> None:
         tol = resolve_tolerance(self.accuracy)
