@@ -335,7 +335,7 @@ def puncture(
             f"[bold]{design.shape} ({design.tiling})[/], {p['n_scales']} scales, {interaction}: "
             f"F_c* = {p['Fc_star']:.6g}{extra} at tilt {p['tilt_deg']:.4g} deg, load point "
             f"({p['load_point'][0]:.3f}, {p['load_point'][1]:.3f}), delta_c* = {p['delta_c_star']:.4g}"
-            f"{branch}; {p['increments']} increments, {p['qp_solves']} QP paths, "
+            f"{branch}; {p['increments']} increments, {p['qp_solves']} sequential QPs, "
             f"max penetration {p['max_penetration']:.2g} L, {p['wall_s']:.2f} s"
         )
 
