@@ -12,10 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..mirror import antisymmetric_rows, map_dofs
 from ..tiling import Patch
-
-__all__ = ["antisymmetric_rows", "map_dofs", "mirror_through", "patch_symmetries", "vertex_orbits"]
 
 _TOL = 1e-6
 
