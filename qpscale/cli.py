@@ -276,11 +276,10 @@ def puncture(
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c."""
     from .experiments.puncture import PunctureSetup, run_puncture
     from .increment import SQPSettings
-    from .solvers import available_solvers
+    from .solvers import available_solvers, is_available
 
-    allowed = [*available_solvers(), "penalty"]
-    if solver not in allowed:
-        raise InvalidDesign("solver", solver, "{" + ", ".join(allowed) + "}")
+    if solver != "penalty" and not is_available(solver):
+        raise InvalidDesign("solver", solver, "{" + ", ".join([*available_solvers(), "penalty"]) + "}")
     if E_s is not None and not (math.isfinite(E_s) and E_s > 0):
         raise InvalidDesign("E_s", E_s, "(0, inf) Pa")  # before the run, not after it
     design = make_design(shape, tiling, slant, slant_dir, gap, thickness, 0 if isolated else rings)

@@ -23,6 +23,7 @@ from ..increment import Equilibrium, LoadPoint, SQPSettings, solve_equilibrium
 from ..mirror import Mirror, map_dofs
 from ..stability import Stability, second_variation
 from ..substrate import SubstrateModel, stiffness_matrix
+from ..threads import limited_blas
 from ..tiling import Design, Patch
 from .symmetry import mirror_through, vertex_orbits
 
@@ -680,6 +681,11 @@ def run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None = 
     >>> 0.2 < r.Fc_star < 0.6
     True
     """
+    with limited_blas():
+        return _run_puncture(setup, progress)
+
+
+def _run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None) -> PunctureResult:
     t0 = time.perf_counter()
     patch, K = build_model(setup)
     if setup.load_point is not None:

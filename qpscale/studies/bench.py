@@ -22,7 +22,7 @@ from ..experiments.puncture import PunctureSetup, run_puncture
 from ..increment import SQPSettings
 from ..penalty import PenaltySettings
 from ..qp import resolve_tolerance
-from ..solvers import available_solvers
+from ..solvers import available_solvers, is_available
 from ..tiling import Design
 from ..timelimit import TimeLimitReached
 from ..timelimit import time_limit as wall_limit
@@ -64,7 +64,7 @@ class Method:
     increments: int = 16
 
     def __post_init__(self) -> None:
-        if self.solver != "penalty" and self.solver not in available_solvers():
+        if self.solver != "penalty" and not is_available(self.solver):
             raise InvalidDesign("solver", self.solver, "an installed backend or 'penalty'")
 
     @property
