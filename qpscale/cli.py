@@ -59,6 +59,7 @@ FLAG_OF = {
     "coupling": "--coupling-factor",
     "phi_c_deg": "--phi-c",
     "solver": "--solver",
+    "formulation": "--formulation",
 }
 
 
@@ -252,6 +253,11 @@ def puncture(
         help="Substrate coupling f in [0, 1] (default 1; 0.04 for --interaction contact).",
     ),
     solver: str = typer.Option("clarabel", "--solver", help="clarabel, osqp, cvxpy or qpsolvers:<name>."),
+    formulation: str = typer.Option(
+        "plane",
+        "--formulation",
+        help="Scale-scale contact: plane (separating planes, every backend but osqp) or feature.",
+    ),
     accuracy: str = typer.Option("high", "--accuracy", help="QP tolerance: high 1e-9, mid 1e-6, low 1e-3."),
     phi_c: float = typer.Option(13.0, "--phi-c", help="Critical tilt, degrees, (0, 60]."),
     nu: float = typer.Option(0.5, "--nu", help="Poisson's ratio of the substrate, [0, 0.5]."),
@@ -274,6 +280,7 @@ def puncture(
     as_json: bool = JsonOpt,
 ) -> None:
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c."""
+    from .contact import ContactSettings
     from .experiments.puncture import PunctureSetup, run_puncture
     from .increment import SQPSettings
     from .solvers import available_solvers, is_available
@@ -292,6 +299,7 @@ def puncture(
         load_point=load_point,
         probe=probe,
         sqp=SQPSettings(solver=solver, accuracy=accuracy),
+        contact=ContactSettings(formulation=formulation),
     )
     with _progress("puncture") as bar:
         task = bar.add_task("puncture", total=None)
@@ -304,6 +312,7 @@ def puncture(
         "max_penetration": result.max_penetration,
         "increments": len(result.states) - 1,
         "solver": solver,
+        "formulation": formulation,
         "wall_s": result.wall_s,
         "qp_solves": result.qp_solves,
         "n_scales": design.patch().n_scales,

@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 from qpscale import Design
 from qpscale.cli import app
 from qpscale.contact import ContactSettings
+from qpscale.errors import InvalidDesign
 from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture, top_vertices
 from qpscale.experiments.symmetry import mirror_through, vertex_orbits
 from qpscale.geometry import tilt
@@ -85,6 +86,19 @@ def test_backends_agree_on_Fc():
         # eigenvalue noise of 1e-9 (FD Hessian, states to |dq| <= 1e-8) moves the located depth
         # by ~3e-7 L: 1e-5 relative (measured 1.9e-7 between Clarabel and PIQP).
         assert result.branch["delta_branch"][0] == pytest.approx(ref.branch["delta_branch"][0], rel=1e-5)
+
+
+def test_osqp_is_refused_on_the_plane_formulation_not_switched():
+    # Every backend solves the formulation it is given: OSQP cannot solve the plane rows (it stops
+    # at its iteration limit), so asking for it is an input error naming --solver, exit 2, and the
+    # feature formulation must be asked for by name.  Nothing switches silently.
+    with pytest.raises(InvalidDesign, match="solver"):
+        PunctureSetup(design=Design(rings=1), sqp=SQPSettings(solver="osqp"))
+    out = CliRunner().invoke(app, ["puncture", "--rings", "1", "--solver", "osqp", "--json"])
+    assert out.exit_code == 2 and "--solver" in out.output and "formulation" in out.output
+    # Without contact (the isolated scale) there are no plane rows and OSQP is fine.
+    alone = PunctureSetup(design=Design(rings=0), sqp=SQPSettings(solver="osqp"))
+    assert alone.contact.formulation == "plane"
 
 
 def test_osqp_agrees_on_the_feature_formulation():

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..contact import ContactSettings
 from ..errors import InvalidDesign, QpscaleError
 from ..experiments.puncture import PunctureSetup, run_puncture
 from ..increment import SQPSettings
@@ -54,6 +55,9 @@ class Method:
         Backend option overrides (e.g. OSQP ``{"polishing": False}``).
     increments : int
         Target increments of the path.
+    formulation : str
+        Contact formulation of the exact-contact methods: ``plane`` (the default) or ``feature``
+        (OSQP, which cannot solve the plane formulation, runs on it and says so in its name).
     """
 
     name: str
@@ -62,6 +66,7 @@ class Method:
     penalty: PenaltySettings | None = None
     options: dict | None = None
     increments: int = 16
+    formulation: str = "plane"
 
     def __post_init__(self) -> None:
         if self.solver != "penalty" and not is_available(self.solver):
@@ -157,17 +162,23 @@ def default_methods(quick: bool = True) -> list[Method]:
     extra = ("piqp", "clarabel") if quick else QP_EXTRA
     out += [Method(f"qpsolvers:{n}", f"qpsolvers:{n}") for n in extra if f"qpsolvers:{n}" in have]
     if not quick:
-        out += [Method("osqp-mid", "osqp", "mid")]
+        out += [Method("osqp-feature-mid", "osqp", "mid", formulation="feature")]
         out += [
             Method(f"penalty-k{k:.0e}", "penalty", penalty=PenaltySettings(k_pen=k))
             for k in (1e1, 1e2, 1e3, 1e4, 1e5)
         ]
         out += [
-            Method("osqp", "osqp"),
+            Method("osqp-feature", "osqp", formulation="feature"),
             Method("clarabel-mid", "clarabel", "mid"),
             Method("clarabel-low", "clarabel", "low"),
-            Method("osqp-low", "osqp", "low"),
-            Method("osqp-nopolish-mid", "osqp", "mid", options={"polishing": False}),
+            Method("osqp-feature-low", "osqp", "low", formulation="feature"),
+            Method(
+                "osqp-feature-nopolish-mid",
+                "osqp",
+                "mid",
+                options={"polishing": False},
+                formulation="feature",
+            ),
             Method("penalty-k1e+03-n32", "penalty", penalty=PenaltySettings(k_pen=1e3), increments=32),
         ]
     return out
@@ -201,6 +212,7 @@ def _setup(scene: Scene, method: Method, load_point: tuple[float, float] | None)
         probe=True,
         increments=method.increments,
         sqp=SQPSettings(solver=method.solver, accuracy=method.accuracy),
+        contact=ContactSettings(formulation=method.formulation),
         penalty=method.penalty,
     )
 

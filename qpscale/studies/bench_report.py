@@ -88,7 +88,7 @@ def stability_map(
 ) -> pd.DataFrame:
     """Run the grid; each point's reference is clarabel at high accuracy at the scene's load point."""
     kappas = (1e2, 1e4) if quick else (1e1, 1e2, 1e3, 1e4, 1e5, 1e6)
-    methods = [Method("osqp-mid", "osqp", "mid")]
+    methods = [Method("osqp-feature-mid", "osqp", "mid", formulation="feature")]
     methods += [Method(f"penalty-k{k:.0e}", "penalty", penalty=PenaltySettings(k_pen=k)) for k in kappas]
     tasks = [(params, scene, methods, time_limit) for params, scene in stability_grid(quick)]
     points = pmap(_stability_point, tasks, workers, progress, lambda t: f"stability {t[1].name}")
@@ -186,7 +186,7 @@ FUZZ_LIMIT_S = 30.0
 FUZZ_METHODS = (
     Method("clarabel", "clarabel"),
     Method("qpsolvers:piqp", "qpsolvers:piqp"),
-    Method("osqp", "osqp"),
+    Method("osqp-feature", "osqp", formulation="feature"),
     Method("penalty-k1e+03", "penalty", penalty=PenaltySettings(k_pen=1e3)),
 )
 
