@@ -325,7 +325,7 @@ def puncture(
         },
         "candidates": result.candidates,
         "branch": result.branch,
-        "events": result.events,
+        "events": [e.to_dict() for e in result.events],
     }
     if E_s is not None:
         from .units import force_from_star

@@ -10,15 +10,17 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from enum import Enum
 
 import numpy as np
 import scipy.sparse as sp
 
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from .errors import InvalidDesign, SolverFailure
+from .events import Rescue
 from .geometry import rotation_matrix, tangent_operator
 from .mirror import Mirror
-from .qp import IncrementQP, resolve_tolerance
+from .qp import IncrementQP, IncrementResult, resolve_tolerance
 from .solvers import solve_qp
 from .tiling import Patch
 
@@ -378,7 +380,51 @@ def _accelerated(
     return z[: q.size].reshape(q.shape), replace(cs, plane_memory=memory)
 
 
-def solve_equilibrium(
+class LevelStatus(str, Enum):
+    """How one load level ended (formulations/increment.md sec. 5)."""
+
+    CONVERGED = "converged"
+    QP_FAILED = "qp failed"
+    NOT_CONVERGED = "not converged"
+
+
+@dataclass(frozen=True)
+class LevelOutcome:
+    """The outcome of one load level: a status, the state if it converged, never an exception.
+
+    Attributes
+    ----------
+    status : LevelStatus
+    state : Equilibrium or None
+        The converged state; None unless ``status`` is ``CONVERGED``.
+    failure : SolverFailure or None
+        What to report when the level failed: the backend's status, the increment, the detail.
+    rescues : tuple of Rescue
+        The declared rescues that fired on the way (``events.LEVEL_RESCUES``), in order.
+    """
+
+    status: LevelStatus
+    state: Equilibrium | None
+    failure: SolverFailure | None = None
+    rescues: tuple[Rescue, ...] = ()
+
+    @property
+    def converged(self) -> bool:
+        return self.status is LevelStatus.CONVERGED
+
+    def unwrap(self) -> Equilibrium:
+        """The converged state; for a failed level, raise its failure (the error a user sees)."""
+        if self.state is not None:
+            return self.state
+        assert self.failure is not None
+        raise self.failure
+
+
+def _failed(status: LevelStatus, failure: SolverFailure, rescues: list[Rescue]) -> LevelOutcome:
+    return LevelOutcome(status, None, failure, tuple(rescues))
+
+
+def iterate_level(
     patch: Patch,
     K: sp.csc_matrix,
     q0: np.ndarray,
@@ -389,8 +435,8 @@ def solve_equilibrium(
     increment: int | None = None,
     previous: ContactSet | None = None,
     mirror: Mirror | None = None,
-) -> Equilibrium:
-    """Sequential QP at a fixed load level, eqs. (5)-(7).
+) -> LevelOutcome:
+    """One attempt at a load level: the sequential QP, eqs. (5)-(7), with one plane update.
 
     Linearise the loading constraint and the contact gaps at the current configuration, solve
     the QP, update the configuration exactly (finite rotations), repeat until the update is
@@ -399,12 +445,9 @@ def solve_equilibrium(
     for the feature formulation, keeps each pair's axis sticky, formulations/contact.md sec. 6).
     ``mirror`` holds the path on the symmetric branch of that reflection: the antisymmetric DOF
     modes stay zero and the separating planes mirror-symmetric (sec. 2, Held symmetry).  While the
-    contact rows stay the same, the iterates are Anderson-accelerated (sec. 4).
-
-    Raises
-    ------
-    SolverFailure
-        When a QP fails its checks, or the iteration does not converge.
+    contact rows stay the same, the iterates are Anderson-accelerated (sec. 4).  The first two
+    rescues of the level's policy act inside (``qp_retry`` in :func:`qpscale.solvers.solve_qp`,
+    ``stall_tighten`` here); each firing is recorded in the outcome.
     """
     q = np.array(q0, dtype=float, copy=True)
     build_s = solve_s = 0.0
@@ -417,6 +460,7 @@ def solve_equilibrium(
     accuracy: str | float = settings.accuracy
     steps: list[float] = []
     tighten_tried = False
+    rescues: list[Rescue] = []
     for it in range(1, settings.max_iter + 1):
         t0 = time.perf_counter()
         cs = (
@@ -431,17 +475,19 @@ def solve_equilibrium(
         if mirror is not None:
             qp = _with_mirror(qp, mirror, q, cs)
         build_s += time.perf_counter() - t0
-        try:
-            res = solve_qp(qp, solver=settings.solver, accuracy=accuracy, check=True)
-        except SolverFailure as exc:
-            if accuracy == settings.accuracy:
-                raise SolverFailure(exc.solver, exc.status, increment, exc.detail) from exc
+        res = _solve(qp, settings.solver, accuracy)
+        if not res.found and accuracy != settings.accuracy:
             # The backend cannot reach the tightened tolerance: back to the one asked for.
             accuracy = settings.accuracy
-            try:
-                res = solve_qp(qp, solver=settings.solver, accuracy=accuracy, check=True)
-            except SolverFailure as exc2:
-                raise SolverFailure(exc2.solver, exc2.status, increment, exc2.detail) from exc2
+            rescues.append(Rescue("stall_tighten", delta, increment, "tightened tolerance not reached"))
+            res = _solve(qp, settings.solver, accuracy)
+        if res.extras.get("retried"):
+            rescues.append(
+                Rescue("qp_retry", delta, increment, f"first status {res.extras.get('first_status')}")
+            )
+        if not res.found:
+            failure = SolverFailure(settings.solver, res.status, increment, res.extras.get("detail", ""))
+            return _failed(LevelStatus.QP_FAILED, failure, rescues)
         solve_s += res.build_s + res.solve_s
         dq = res.x[: q.size].reshape(q.shape)
         theta = res.x[q.size :]
@@ -457,7 +503,7 @@ def solve_equilibrium(
                 refresh = settings.penetration_tol
                 continue
             lam = res.z if res.z is not None and cs is not None else np.zeros(0)
-            return Equilibrium(
+            state = Equilibrium(
                 q=q,
                 delta=delta,
                 F=float(res.y[0]),
@@ -470,17 +516,94 @@ def solve_equilibrium(
                 solve_s=solve_s,
                 tightened=accuracy != settings.accuracy,
             )
+            return LevelOutcome(LevelStatus.CONVERGED, state, None, tuple(rescues))
         steps.append(float(np.max(np.abs(dq))))
         if not tighten_tried and _stalled(steps):
             accuracy, tighten_tried = STALL_TIGHTEN * resolve_tolerance(settings.accuracy), True
+            rescues.append(Rescue("stall_tighten", delta, increment, f"|dq| {steps[-1]:.3g} stalled"))
         labels = cs.labels if cs is not None else ()
         if labels != rows:
             accel.reset()
             rows = labels
         q, cs = _accelerated(accel, q, dq, cs)
-    raise SolverFailure(
+    failure = SolverFailure(
         settings.solver,
         "sequential QP did not converge",
         increment,
         f"last |dq| = {np.max(np.abs(dq)):.3g} after {settings.max_iter} iterations",
     )
+    return _failed(LevelStatus.NOT_CONVERGED, failure, rescues)
+
+
+def _solve(qp: IncrementQP, solver: str, accuracy: str | float) -> IncrementResult:
+    """``solve_qp`` without raising on a rejected answer (``found`` says), with the reason in
+    ``extras["detail"]``; a backend that raises (bad data, an exception inside it) is a rejected
+    answer too."""
+    try:
+        res = solve_qp(qp, solver=solver, accuracy=accuracy, check=False)
+    except SolverFailure as exc:
+        return IncrementResult(
+            None, None, None, False, exc.status, None, None, 0.0, 0.0, extras={"detail": exc.detail}
+        )
+    if not res.found:
+        r = res.residuals
+        detail = "no solution returned" if r is None else ", ".join(f"{k}={v:.3g}" for k, v in r.items())
+        tol = resolve_tolerance(accuracy)
+        detail = f"{detail}; tolerance {tol:g}; rejected by {res.extras.get('rejected_by')}"
+        res = replace(res, extras={**res.extras, "detail": detail})
+    return res
+
+
+def solve_level(
+    patch: Patch,
+    K: sp.csc_matrix,
+    q0: np.ndarray,
+    load: LoadPoint,
+    delta: float,
+    contact: ContactSettings | None,
+    settings: SQPSettings,
+    increment: int | None = None,
+    previous: ContactSet | None = None,
+    mirror: Mirror | None = None,
+) -> LevelOutcome:
+    """A load level under the declared rescue policy (sec. 5, ``events.LEVEL_RESCUES``).
+
+    One attempt (:func:`iterate_level`); if it fails with separating planes, the level is solved
+    again from the same start with the other plane update (sec. 4b): the undamped iteration can
+    cycle on a hinged plane, the damped one creep where a plane travels far, and a converged
+    state is a fixed point of both.  A level that fails both ways reports the first attempt's
+    failure (the update the caller asked for).
+    """
+    args = (patch, K, q0, load, delta, contact)
+    kw = {"increment": increment, "previous": previous, "mirror": mirror}
+    first = iterate_level(*args, settings, **kw)  # type: ignore[arg-type]
+    if first.converged or contact is None or contact.formulation != "plane":
+        return first
+    other = replace(settings, plane_damping=not settings.plane_damping)
+    second = iterate_level(*args, other, **kw)  # type: ignore[arg-type]
+    if not second.converged:
+        return replace(first, rescues=first.rescues + second.rescues)
+    fired = Rescue("other_plane_update", delta, increment, "damped" if other.plane_damping else "undamped")
+    return replace(second, rescues=first.rescues + (fired,) + second.rescues)
+
+
+def solve_equilibrium(
+    patch: Patch,
+    K: sp.csc_matrix,
+    q0: np.ndarray,
+    load: LoadPoint,
+    delta: float,
+    contact: ContactSettings | None,
+    settings: SQPSettings,
+    increment: int | None = None,
+    previous: ContactSet | None = None,
+    mirror: Mirror | None = None,
+) -> Equilibrium:
+    """One attempt at a load level (:func:`iterate_level`), its state or its failure raised.
+
+    Raises
+    ------
+    SolverFailure
+        When a QP fails its checks, or the iteration does not converge.
+    """
+    return iterate_level(patch, K, q0, load, delta, contact, settings, increment, previous, mirror).unwrap()

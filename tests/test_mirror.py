@@ -96,7 +96,7 @@ def test_a_held_state_is_an_equilibrium_of_the_free_problem(corner):
     path = _Path(setup, patch, K, load, mirror=mirror)
     states = [path.origin()]
     for delta in (0.02, 0.04, 0.06, 0.08):
-        states.append(path.solve(_predict(states, delta), delta, len(states)))
+        states.append(path.solve(_predict(states, delta), delta, len(states)).unwrap())
     for held in states[1:]:
         assert np.max(np.abs(held.q - map_dofs(held.q, mirror.M, mirror.perm))) < 1e-12
         free = solve_equilibrium(

@@ -13,13 +13,15 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
 from ..contact import ContactSettings
 from ..errors import InvalidDesign, SolverFailure
+from ..events import Branch, ContactChange, Event, Failure, Rescue, Snap
 from ..geometry import tilt
-from ..increment import Equilibrium, LoadPoint, SQPSettings, solve_equilibrium
+from ..increment import Equilibrium, LevelOutcome, LevelStatus, LoadPoint, SQPSettings, solve_level
 from ..mirror import Mirror, map_dofs
 from ..stability import Stability, second_variation
 from ..substrate import SubstrateModel, stiffness_matrix
@@ -122,8 +124,9 @@ class PunctureResult:
         The load point relative to the reference point, in L.
     states : list of Equilibrium
         Converged states from the unloaded one to failure (q, F, contact forces).
-    events : list of dict
-        Located events: contact set changes and the failure, with their displacement.
+    events : list of Event
+        Located events (``qpscale.events``): contact changes, snaps, branches, the rescues that
+        fired and the failure, each with its depth.
     branch : dict
         What the stability probe found (``branched``, ``delta``, ``followed``).
     """
@@ -133,7 +136,7 @@ class PunctureResult:
     delta_c_star: float
     load_point: np.ndarray
     states: list[Equilibrium]
-    events: list[dict]
+    events: list[Event]
     branch: dict
     wall_s: float
     qp_solves: int
@@ -220,7 +223,7 @@ class _Path:
         self.contact = setup.contact if setup.contact_on else None
         self.phi_c = np.deg2rad(setup.phi_c_deg)
         self.solves = 0
-        self.events: list[dict] = []
+        self.events: list[Event] = []
         self.mirror, self.check = mirror, check
         # The energy balance that locates jumps holds for exact frictionless contact only (the
         # feature rows' sticky axis and the penalty dissipate ~1e-3 of the work).
@@ -228,15 +231,35 @@ class _Path:
         self.smooth_from = 0  # first state after the last jump (the curvature cap's window)
         self.unconfirmed = False  # an instability whose pushes found no lower energy (run)
 
-    def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> Equilibrium:
-        """The equilibrium at depth ``delta`` from ``start``; ``descent``: by the plain fixed-point
-        iteration, an energy descent in the K metric (the landing of a jump, sec. 4)."""
+    def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
+        """The level at depth ``delta`` from ``start`` under the level's rescue policy
+        (``increment.solve_level``); ``descent``: by the plain fixed-point iteration, an energy
+        descent in the K metric (the landing of a jump, sec. 4).  The rescues that fired join the
+        path's events."""
         self.solves += 1
         if self.setup.sqp.solver == "penalty":
-            from ..penalty import PenaltySettings, solve_equilibrium_penalty
+            return self._penalty_solve(start, delta, index)
+        outcome = solve_level(
+            self.patch,
+            self.K,  # type: ignore[arg-type]
+            start.q,
+            self.load,
+            delta,
+            self.contact,
+            self.sqp(descent),
+            increment=index,
+            previous=start.contacts,
+            mirror=self.mirror,
+        )
+        self.events.extend(outcome.rescues)
+        return outcome
 
-            settings = self.setup.penalty if self.setup.penalty is not None else PenaltySettings()
-            return solve_equilibrium_penalty(
+    def _penalty_solve(self, start: Equilibrium, delta: float, index: int) -> LevelOutcome:
+        from ..penalty import PenaltySettings, solve_equilibrium_penalty
+
+        settings = self.setup.penalty if self.setup.penalty is not None else PenaltySettings()
+        try:
+            state = solve_equilibrium_penalty(
                 self.patch,
                 self.K,
                 start.q,
@@ -247,34 +270,9 @@ class _Path:
                 increment=index,
                 previous=start.contacts,
             )
-        settings = self.sqp(descent)
-        try:
-            return self._sqp_solve(start, delta, index, settings)
-        except SolverFailure as failure:
-            # The other plane update (sec. 4b of increment.md): the undamped iteration can cycle
-            # on a hinged plane, the damped one can creep where a plane must travel far; a level
-            # that converges either way has the same fixed point.
-            other = replace(settings, plane_damping=not settings.plane_damping)
-            try:
-                eq = self._sqp_solve(start, delta, index, other)
-            except SolverFailure:
-                raise failure from None
-            self.events.append({"kind": "plane_damping", "delta": delta, "damped": other.plane_damping})
-            return eq
-
-    def _sqp_solve(self, start: Equilibrium, delta: float, index: int, settings: SQPSettings) -> Equilibrium:
-        return solve_equilibrium(
-            self.patch,
-            self.K,
-            start.q,
-            self.load,
-            delta,
-            self.contact,  # type: ignore[arg-type]
-            settings,
-            increment=index,
-            previous=start.contacts,
-            mirror=self.mirror,
-        )
+        except SolverFailure as failure:  # the penalty baseline reports by raising
+            return LevelOutcome(LevelStatus.NOT_CONVERGED, None, failure)
+        return LevelOutcome(LevelStatus.CONVERGED, state)
 
     def sqp(self, descent: bool = False) -> SQPSettings:
         """The SQP settings of this path: the plain iteration for a landing (``descent``), and no
@@ -305,21 +303,14 @@ class _Path:
             start = Equilibrium(
                 eq.q + side * BRANCH_PUSH * sv.mode, eq.delta, eq.F, eq.contacts, eq.lam, 0, 0.0
             )
-            try:
-                moved = self.solve(start, eq.delta, -1, descent=True)
-            except SolverFailure:
+            outcome = self.solve(start, eq.delta, -1, descent=True)
+            if outcome.state is None:
                 continue
+            moved = outcome.state
             e = self.energy(moved)
             if e < energy and (best is None or e < best[0]):
                 best = (e, moved)
-        self.events.append(
-            {
-                "kind": "branch",
-                "delta": eq.delta,
-                "min_eigenvalue": sv.min_eigenvalue,
-                "energy_drop": energy - best[0] if best else 0.0,
-            }
-        )
+        self.events.append(Branch(eq.delta, sv.min_eigenvalue, energy - best[0] if best else 0.0))
         return best[1] if best else eq
 
     def breaks_symmetry(self, sv: Stability) -> bool:
@@ -336,7 +327,7 @@ class _Path:
     def first_step(self, origin: Equilibrium) -> float:
         """Step from the linear response: delta at failure ~ phi_c / (d tilt / d delta)."""
         probe = 1e-4
-        eq = self.solve(origin, probe, 0)
+        eq = self.solve(origin, probe, 0).unwrap()
         rate = self.tilt_of(eq) / probe
         if not rate > 0:
             raise SolverFailure(self.setup.sqp.solver, "load does not tilt the scale", 0)
@@ -348,7 +339,7 @@ class _Path:
         a, b, side = lo, hi, 0
         for _ in range(60):
             d = (a.delta * f_hi - b.delta * f_lo) / (f_hi - f_lo)
-            eq = self.solve(a, d, index)
+            eq = self.solve(a, d, index).unwrap()
             f = self.tilt_of(eq) - self.phi_c
             if abs(f) <= 1e-12 * self.phi_c:
                 return eq
@@ -423,10 +414,13 @@ class _Path:
             last = states[-1]
             if ceiling < np.inf:
                 step = ceiling - last.delta if retest else 0.5 * (ceiling - last.delta)
-            try:
-                eq = self.solve(_predict(states, last.delta + step), last.delta + step, len(states))
-            except SolverFailure:
+            outcome = self.solve(_predict(states, last.delta + step), last.delta + step, len(states))
+            if outcome.state is None:
+                assert outcome.failure is not None
                 if step >= 2.0 * min_step:
+                    self.events.append(
+                        Rescue("halve_step", last.delta + step, len(states), outcome.failure.status)
+                    )
                     if ceiling < np.inf:
                         ceiling, retest = last.delta + step, False
                     else:
@@ -435,14 +429,15 @@ class _Path:
                 # No step converges, however short: the plain iteration (an energy descent from
                 # the last state, sec. 2 Landing) either follows the branch where the extrapolated
                 # one leapt or cycled, or lands past a limit point; if it fails too, so does the path.
-                eq = self.solve(last, last.delta + step, len(states), descent=True)
+                eq = self.solve(last, last.delta + step, len(states), descent=True).unwrap()
+                self.events.append(Rescue("plain_iteration", eq.delta, len(states), outcome.failure.status))
                 if self.snapped(last, eq):
                     if self.left_branch(last, eq):
                         return states
                     self.smooth_from = len(states)
                 ceiling, step, landed = np.inf, resume, True
             else:
-                landed = False
+                eq, landed = outcome.state, False
             sv = self.stability(eq) if self.check and not landed else None
             unstable = sv is not None and not sv.stable and not self.unconfirmed
             if sv is not None and sv.stable:
@@ -459,7 +454,7 @@ class _Path:
                         raise _Unstable(states, eq, sv, resume)
                     landing = self.branch_off(eq, sv, sides=(1.0, -1.0))
                 else:
-                    landing = self.solve(last, eq.delta, len(states), descent=True)
+                    landing = self.solve(last, eq.delta, len(states), descent=True).unwrap()
                 if not unstable and not self.snapped(last, landing):
                     # The plain iteration follows the path where the extrapolated one leapt into
                     # another basin: no jump, an ordinary step.
@@ -470,7 +465,10 @@ class _Path:
                     # and the path goes on without branching, as a continuous step, until a state
                     # passes.
                     self.unconfirmed = True
-                    self.events[-1]["confirmed"] = False
+                    at = max(i for i, e in enumerate(self.events) if isinstance(e, Branch))
+                    branch = self.events[at]
+                    assert isinstance(branch, Branch)
+                    self.events[at] = replace(branch, confirmed=False)
                     ceiling, step = np.inf, resume
                 else:
                     if self.left_branch(last, landing):
@@ -483,9 +481,7 @@ class _Path:
                 retest = True
             if self.tilt_of(eq) >= self.phi_c:
                 final = self.locate_failure(last, eq, len(states))
-                self.events.append(
-                    {"kind": "failure", "by": "tilt", "delta": final.delta, "tilt_deg": self.setup.phi_c_deg}
-                )
+                self.events.append(Failure("tilt", final.delta, self.setup.phi_c_deg))
                 states.append(final)
                 return states
             self._record_contact_change(last, eq)
@@ -503,25 +499,12 @@ class _Path:
     def left_branch(self, last: Equilibrium, landing: Equilibrium) -> bool:
         """Record a located jump from ``last`` to ``landing``; True if it is the failure: the
         tilt passes phi_c within the jump, and F_c is the force carried just before it."""
-        jump = {
-            "kind": "snap",
-            "delta_between": [last.delta, landing.delta],
-            "energy_released": self.released(last, landing),
-            "tilt_deg_between": [float(np.rad2deg(self.tilt_of(s))) for s in (last, landing)],
-            "F_between": [last.F, landing.F],
-        }
+        tilts = (float(np.rad2deg(self.tilt_of(last))), float(np.rad2deg(self.tilt_of(landing))))
+        jump = Snap((last.delta, landing.delta), self.released(last, landing), tilts, (last.F, landing.F))
         self.events.append(jump)
         if self.tilt_of(landing) < self.phi_c:
             return False
-        self.events.append(
-            {
-                "kind": "failure",
-                "by": "snap",
-                "delta": last.delta,
-                "tilt_deg": jump["tilt_deg_between"][0],
-                "tilt_deg_after": jump["tilt_deg_between"][1],
-            }
-        )
+        self.events.append(Failure("snap", last.delta, tilts[0], tilts[1]))
         return True
 
     def _remaining(self, states: list[Equilibrium]) -> float:
@@ -539,9 +522,7 @@ class _Path:
     def _record_contact_change(self, before: Equilibrium, after: Equilibrium) -> None:
         changed = _active_pairs(before) ^ _active_pairs(after)
         if changed:
-            self.events.append(
-                {"kind": "contact", "delta_between": [before.delta, after.delta], "pairs": sorted(changed)}
-            )
+            self.events.append(ContactChange((before.delta, after.delta), tuple(sorted(changed))))
 
 
 def _work(a: Equilibrium, b: Equilibrium) -> float:
@@ -625,10 +606,10 @@ def _one_point(
     if mirror is None:
         path = _Path(setup, patch, K, load, check=check)
         states = path.run()
-        branches = [e for e in path.events if e["kind"] == "branch" and e.get("confirmed", True)]
-        info = {"check": "second variation" if check else "off", "branched": bool(branches)}
+        branches = [e for e in path.events if isinstance(e, Branch) and e.confirmed]
+        info: dict[str, Any] = {"check": "second variation" if check else "off", "branched": bool(branches)}
         if branches:
-            info.update({"delta_branch": branches[0]["delta"], "followed": "lower-energy side"})
+            info.update({"delta_branch": branches[0].delta, "followed": "lower-energy side"})
         return states, path.events, path.solves, info
     return _symmetric_point(setup, patch, K, load, xy, mirror)
 

@@ -1,0 +1,211 @@
+"""A load level's outcome and its declared rescue policy (formulations/increment.md sec. 5).
+
+Every rescue is made to fire by a fault-injecting backend: Clarabel wrapped so that chosen QPs
+fail (no point, status ``injected fault``) or answer a little off (a near miss).  Each test checks
+that the rescue fired (a typed ``Rescue`` event) and that the state it reaches is the state the
+unperturbed level or path reaches, to the accuracy the sequential QP itself has.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import qpscale.experiments.puncture as puncture
+import qpscale.solvers as solvers
+from qpscale import Design
+from qpscale.cli import app
+from qpscale.errors import SolverFailure
+from qpscale.events import LEVEL_RESCUES, PATH_RESCUES, Rescue
+from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
+from qpscale.increment import LevelStatus, SQPSettings, solve_level
+from qpscale.qp import candidate_result
+
+SMALL = Design(rings=1)
+EDGE = (1.0, 0.0)  # mid-edge of the 3x3 square's centre scale: a continuous path to a fold
+DEPTH = 0.3  # the loaded scale presses on its neighbour there (planes in contact)
+
+
+class Faults:
+    """Clarabel with injected faults, counted per QP (a retry of the same QP is the same QP).
+
+    ``fail``: indices (1-based) of QPs answered with no point; ``short``: QPs whose first answer is
+    5e-9 off in x (residuals ~1e-8: a near miss of the 1e-9 check); ``noise``: every answer at
+    the ordinary tolerance is the exact answer of the QP with its linear term moved by up to this
+    much (it passes the 1e-9 check, and its dq carries noise of that size over K's smallest
+    eigenvalue); answers at a tightened tolerance are exact.  ``active`` off lifts every fault.
+    """
+
+    def __init__(
+        self,
+        fail: set[int] | None = None,
+        short: set[int] | None = None,
+        every: bool = False,
+        noise: float = 0.0,
+    ):
+        self.fail, self.short, self.every, self.noise = fail or set(), short or set(), every, noise
+        self.rng = np.random.default_rng(0)
+        self.original = solvers._REGISTRY["clarabel"]
+        self.seen: list[int] = []
+        self.calls = 0
+        self.active = True
+
+    def __call__(self, qp, opts, ws):
+        self.calls += 1
+        if not self.seen or self.seen[-1] != id(qp):
+            self.seen.append(id(qp))
+        k = len(self.seen)
+        if self.active and (self.every or k in self.fail):
+            return candidate_result(
+                qp, None, None, None, status="injected fault", ok=False, build_s=0, solve_s=0
+            )
+        if self.active and self.noise and opts["tol_gap_abs"] >= 1e-11:
+            moved = replace(qp, q=qp.q + self.rng.uniform(-self.noise, self.noise, qp.n))
+            r = self.original(moved, opts, ws)
+            return candidate_result(qp, r.x, r.z, r.y, status=r.status, ok=r.found, build_s=0, solve_s=0)
+        r = self.original(qp, opts, ws)
+        if self.active and k in self.short and "static_regularization_constant" not in opts:
+            x = r.x + 5e-9
+            return candidate_result(qp, x, r.z, r.y, status="AlmostSolved", ok=True, build_s=0, solve_s=0)
+        return r
+
+
+@pytest.fixture(scope="module")
+def level():
+    """The mid-edge level of the 3x3 square, solved without faults: (arguments, state)."""
+    setup = PunctureSetup(design=SMALL, load_point=EDGE, probe=False)
+    patch, K = build_model(setup)
+    args = (patch, K, np.zeros((patch.n_scales, 5)), _load_point(patch, EDGE), DEPTH, setup.contact)
+    clean = solve_level(*args, SQPSettings())
+    assert clean.converged and not clean.rescues and clean.state.contacts.planes.count > 0
+    return args, clean.state
+
+
+def _same_state(a, b):
+    # The sequential QP stops at |dq| <= 1e-8, so two converged runs of one level differ by about
+    # that much in q; F is a multiplier of the same accuracy.
+    assert np.max(np.abs(a.q - b.q)) <= 1e-7
+    assert a.F == pytest.approx(b.F, rel=1e-8)
+
+
+def test_the_policy_is_declared_and_undeclared_rescues_are_refused():
+    assert LEVEL_RESCUES == ("qp_retry", "stall_tighten", "other_plane_update")
+    assert PATH_RESCUES == ("halve_step", "plain_iteration")
+    with pytest.raises(ValueError, match="not declared"):
+        Rescue("try_harder", 0.1)
+    assert Rescue("qp_retry", 0.1, 3, "x").to_dict() == {
+        "kind": "rescue",
+        "rescue": "qp_retry",
+        "delta": 0.1,
+        "increment": 3,
+        "detail": "x",
+    }
+
+
+def test_a_level_that_fails_reports_the_backends_status_and_no_state(level, monkeypatch):
+    args, _ = level
+    faults = Faults(every=True)
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
+    out = solve_level(*args, SQPSettings(), increment=7)
+    assert out.status is LevelStatus.QP_FAILED and out.state is None
+    assert out.failure.status == "injected fault" and out.failure.increment == 7
+    # Both plane updates were tried, each QP once more by qp_retry (Clarabel after any rejection).
+    assert faults.calls == 4
+    assert [r.rescue for r in out.rescues] == ["qp_retry", "qp_retry"]
+    with pytest.raises(SolverFailure, match="injected fault"):
+        out.unwrap()
+
+
+def test_a_path_whose_levels_fail_exits_3_with_the_status(monkeypatch):
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(every=True))
+    out = CliRunner().invoke(app, ["puncture", "--rings", "1", "--no-probe", "--load-point", "1", "0"])
+    assert out.exit_code == 3 and "injected fault" in out.output
+
+
+def test_qp_retry_fires_on_a_near_miss_and_keeps_the_state(level, monkeypatch):
+    args, clean = level
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(short={2}))
+    out = solve_level(*args, SQPSettings())
+    assert out.converged and [r.rescue for r in out.rescues] == ["qp_retry"]
+    assert "AlmostSolved" in out.rescues[0].detail
+    _same_state(out.state, clean)
+
+
+def test_other_plane_update_fires_when_the_first_attempt_fails_and_keeps_the_state(level, monkeypatch):
+    args, clean = level
+    faults = Faults(fail={2})  # the first attempt's second QP fails, and so does its retry
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
+    out = solve_level(*args, SQPSettings())
+    assert out.converged
+    assert [r.rescue for r in out.rescues] == ["qp_retry", "other_plane_update"]
+    assert out.rescues[-1].detail == "damped"
+    # A converged state is a fixed point of both plane updates (increment.md sec. 4b).
+    _same_state(out.state, clean)
+
+
+def test_stall_tighten_fires_when_the_steps_stall_on_solver_noise_and_keeps_the_state(level, monkeypatch):
+    # Answers accurate to 5e-10 (they pass the 1e-9 check) move dq by ~1e-9 at random: with a step
+    # test of 1e-10 the level stalls on that noise, its remaining QPs are solved at 1e-11 (exact
+    # here), and it converges to the state the ordinary level reaches.
+    args, clean = level
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(noise=5e-10))
+    out = solve_level(*args, SQPSettings(step_tol=1e-10))
+    assert "stall_tighten" in [r.rescue for r in out.rescues]
+    assert out.converged and out.state.tightened
+    _same_state(out.state, clean)
+
+
+@pytest.fixture(scope="module")
+def alone():
+    """The isolated scale loaded at its corner (the path rescues act above the level, so no
+    contact is needed), and its unperturbed path."""
+    setup = PunctureSetup(design=Design(rings=0), load_point=(1.0, 1.0), probe=False)
+    return setup, run_puncture(setup)
+
+
+def test_halve_step_fires_when_a_level_fails_and_the_path_keeps_Fc(alone, monkeypatch):
+    setup, clean = alone
+    faults = Faults(fail={12})  # one level's QP fails, and so does its retry
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
+    hurt = run_puncture(setup)
+    halved = [e for e in hurt.events if e.kind == "rescue" and e.rescue == "halve_step"]
+    assert len(halved) == 1 and halved[0].detail == "injected fault"
+    # F_c is located at phi_c whatever the steps (puncture.md sec. 3: to 1e-6 or better).
+    assert hurt.Fc_star == pytest.approx(clean.Fc_star, rel=1e-6)
+
+
+def test_plain_iteration_fires_when_no_step_converges_and_the_path_keeps_Fc(alone, monkeypatch):
+    setup, clean = alone
+    faults = Faults(every=True)
+    faults.active = False
+    original = puncture.solve_level
+    levels = {"n": 0}
+
+    def level_with_faults(*args, **kw):
+        # From the fifth level on, every extrapolated iteration fails until the path falls back
+        # on the plain iteration (anderson_depth = 0), which the faults spare.
+        levels["n"] += 1
+        faults.active = levels["n"] >= 5 and args[6].anderson_depth > 0 and not fired()
+        return original(*args, **kw)
+
+    def fired():
+        return any(getattr(e, "rescue", "") == "plain_iteration" for e in events)
+
+    events: list = []
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
+    monkeypatch.setattr(puncture, "solve_level", level_with_faults)
+    original_run = puncture._Path.run
+
+    def run(self, *a, **kw):
+        nonlocal events
+        events = self.events
+        return original_run(self, *a, **kw)
+
+    monkeypatch.setattr(puncture._Path, "run", run)
+    hurt = run_puncture(setup)
+    kinds = [e.rescue for e in hurt.events if e.kind == "rescue"]
+    assert kinds.count("plain_iteration") == 1 and kinds.count("halve_step") >= 10
+    assert hurt.Fc_star == pytest.approx(clean.Fc_star, rel=1e-6)
