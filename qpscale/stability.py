@@ -306,7 +306,8 @@ def _reduced_minimum(
     scale = float(np.max(K.diagonal()))
     if Z.shape[1] == 0:
         return Stability(np.inf, True, np.zeros((n, 5)), len(lifted.rows))
-    w, V = np.linalg.eigh(Z.T @ H @ Z)
+    # Only the smallest eigenpair is needed: LAPACK's MRRR driver (evr) stops there.
+    w, V = la.eigh(Z.T @ H @ Z, subset_by_index=[0, 0])
     mode = (Z @ V[:, 0])[: 5 * n].reshape(n, 5)
     big = np.max(np.abs(mode))
     if big > 0:
