@@ -191,7 +191,7 @@ BRANCH_PUSH = 1e-4
 # equilibria, and a jump surviving down to SNAP_RESOLUTION * delta is a snap (sec. 2).
 SNAP_WORK = 1e-3
 # Smallest eigenvalue of the second variation (relative to K's largest diagonal) still counted as
-# stable: the finite-difference Hessian is accurate to ~1e-9, and a pitchfork's eigenvalue falls
+# stable: the Hessian is exact (the state's accuracy moves mu by ~1e-7), and a pitchfork's eigenvalue falls
 # through zero at a slope of order 1e-3 per L of depth, so the branch point moves by ~1e-3 L.
 STABILITY_TOL = 1e-6
 # Iterations allowed to the landing of a jump: the plain iteration leaves an unstable state at the

@@ -1,0 +1,157 @@
+"""Second variation: formulations/stability.md, the exact Hessian of eqs. (5)-(7)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import qpscale.experiments.puncture as puncture
+from qpscale import Design
+from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture
+from qpscale.geometry import rotation_matrices, tangent_operators
+from qpscale.stability import (
+    _base_hessian,
+    _hessian,
+    _hessian_fd,
+    _lifted,
+    _second_variation_fd,
+    rotated_point_derivatives,
+    second_variation,
+)
+
+# Tolerances, each relative to max K_ii (the scale of the reported eigenvalue).
+TOLERANCES = {
+    # The reference differences exact gradients with step 1e-6: truncation ~1e-12, round-off
+    # ~eps |grad| / h ~ 1e-10 (measured 8.5e-11 on the default 5x5 run's 88 states, 2e-11 to
+    # 9e-11 on the picked 3x3 states, 2e-12 away from the state).
+    "hessian": 1e-9,
+    # mu_min moves by at most |dH| (Weyl), so the same bound plus a margin: 1e-8 (measured 5e-12).
+    "eigenvalue": 1e-8,
+    # An eigenvector moves by ~|dH| / (gap to the next eigenvalue): 1e-7 on the unstable states,
+    # whose negative eigenvalue is simple (measured 1.4e-10).
+    "mode": 1e-7,
+}
+PATH_TOL = puncture.STABILITY_TOL
+SETUP = PunctureSetup(design=Design(rings=1), load_point=(1.0, 1.0))
+
+
+@pytest.fixture(scope="module")
+def corner_states():
+    """Every state the 3x3 square's corner-loaded path tested (symmetric branch, the branch point's
+    bisection, the asymmetric branch after it): the inputs of ``_Path.stability`` as recorded."""
+    seen = []
+    real = puncture._Path.stability
+
+    def record(self, eq):
+        seen.append(eq)
+        return real(self, eq)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(puncture._Path, "stability", record)
+        run_puncture(SETUP)
+    patch, K = build_model(SETUP)
+    load = puncture._load_point(patch, SETUP.load_point)
+    return patch, K, load, seen
+
+
+def _pick(patch, K, load, states):
+    """A few states of different kinds: no contact, hinged planes (a plane whose active rows lie
+    on one line, free to turn about it), clearly unstable, and the asymmetric branch."""
+    kinds = {}
+    for eq in states:
+        lifted = _lifted(patch, eq, load)
+        mu = second_variation(patch, K, eq, load, PATH_TOL).min_eigenvalue
+        if not len(lifted.rows):
+            kinds.setdefault("free", eq)
+        elif _hinged(lifted, eq) and mu > 1e-5:
+            kinds.setdefault("hinged", eq)
+        elif mu < -1e-5:
+            kinds.setdefault("unstable", eq)
+        elif eq.delta > 0.3:
+            kinds.setdefault("branch", eq)
+    assert set(kinds) == {"free", "hinged", "unstable", "branch"}
+    return kinds
+
+
+def _hinged(lifted, eq) -> bool:
+    r = rotated_point_derivatives(eq.q[lifted.scale, 3:5], lifted.X)[0]
+    x = lifted.ref[lifted.scale] + eq.q[lifted.scale, :3] + r
+    for p in range(len(lifted.n0)):
+        pts = x[lifted.plane == p]
+        if len(pts) > 1 and np.linalg.svd(pts - pts.mean(0), compute_uv=False)[1] < 1e-6:
+            return True
+    return False
+
+
+def test_rotated_point_derivatives_match_rodrigues_and_the_tangent_operator():
+    # r against geometry.rotation_matrices (closed form / Taylor), dr against the spatial angular
+    # velocity T dphi x r (contact.md eq. 2): round-off, 1e-12.  ddr against central differences
+    # of dr (step 1e-5: truncation ~1e-10, round-off ~1e-11): 1e-9.  Angles from 0 through the
+    # Taylor switch of rotation_matrices (1e-8) to 1.5 rad.
+    rng = np.random.default_rng(7)
+    size = np.repeat([0.0, 1e-9, 1e-7, 1e-3, 0.3, 1.5], 8)
+    phi = rng.normal(size=(size.size, 2)) * size[:, None]
+    X = rng.normal(size=(size.size, 3))
+    r, dr, ddr = rotated_point_derivatives(phi, X)
+    assert np.allclose(r, np.einsum("mij,mj->mi", rotation_matrices(phi), X), rtol=0, atol=1e-12)
+    T = tangent_operators(phi)
+    assert np.allclose(dr, np.cross(T.transpose(0, 2, 1), r[:, None]), rtol=0, atol=1e-12)
+    h = 1e-5
+    fd = np.stack(
+        [
+            (rotated_point_derivatives(phi + h * e, X)[1] - rotated_point_derivatives(phi - h * e, X)[1])
+            / (2 * h)
+            for e in np.eye(2)
+        ],
+        axis=2,
+    )
+    assert np.allclose(ddr, fd, rtol=0, atol=1e-9)
+
+
+def test_hessian_matches_the_finite_difference_reference(corner_states):
+    patch, K, load, states = corner_states
+    scale = K.diagonal().max()
+    for kind, eq in _pick(patch, K, load, states).items():
+        lifted = _lifted(patch, eq, load)
+        err = np.abs(_hessian(lifted, K) - _hessian_fd(lifted, K)).max()
+        assert err < TOLERANCES["hessian"] * scale, kind
+
+
+def test_hessian_away_from_the_state(corner_states):
+    # At t = sigma = 0 several terms vanish (nu . d2nu/dt2 pieces, n0 . dnu/dt); away from it every
+    # term of eq. (6) is live.  Independent value: central differences (step 1e-6) of the exact
+    # constraint gradients _Lifted.force_gradient at a perturbed point, every unknown.
+    patch, K, load, states = corner_states
+    eq = _pick(patch, K, load, states)["hinged"]
+    lifted = _lifted(patch, eq, load)
+    rng = np.random.default_rng(3)
+    z = lifted.z0 + 0.05 * rng.normal(size=lifted.size)
+    H = _hessian(lifted, K, z)
+    ref = np.zeros_like(H)
+    h = 1e-6
+    for i in range(lifted.size):
+        e = np.zeros(lifted.size)
+        e[i] = h
+        ref[:, i] = -(lifted.force_gradient(z + e) - lifted.force_gradient(z - e)) / (2 * h)
+    geometric = H - _base_hessian(lifted, K)
+    assert np.abs(geometric - 0.5 * (ref + ref.T)).max() < TOLERANCES["hessian"] * K.diagonal().max()
+
+
+def test_verdict_and_min_eigenvalue_agree_with_the_reference(corner_states):
+    # mu_min to 1e-8 of max K_ii; the verdict wherever mu_min is farther than that from -tol (the
+    # bisection of the branch point puts states within 1e-9 of it, where either verdict is right).
+    patch, K, load, states = corner_states
+    verdicts = set()
+    for eq in states:
+        new = second_variation(patch, K, eq, load, PATH_TOL)
+        ref = _second_variation_fd(patch, K, eq, load, PATH_TOL)
+        assert new.min_eigenvalue == pytest.approx(ref.min_eigenvalue, abs=TOLERANCES["eigenvalue"])
+        if abs(ref.min_eigenvalue + PATH_TOL) > TOLERANCES["eigenvalue"]:
+            assert new.stable == ref.stable
+            verdicts.add(ref.stable)
+        assert new.active == ref.active
+        # The mode's sign follows round-off when two entries share the largest magnitude.
+        gap = min(np.abs(new.mode - ref.mode).max(), np.abs(new.mode + ref.mode).max())
+        if not ref.stable:
+            assert gap < TOLERANCES["mode"]
+    assert verdicts == {True, False}  # both verdicts were compared
