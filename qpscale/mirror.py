@@ -119,6 +119,10 @@ class Mirror:
         so when the images come in the other order the plane's normal (from a to b) maps onto
         minus the image's: s = -1, eq. (25).
         """
+        keys = tuple(keys)
+        cache: dict = self.__dict__.setdefault("_images", {})  # a path asks for the same set often
+        if keys in cache:
+            return cache[keys]
         index = {k: j for j, k in enumerate(keys)}
         image = np.full(len(keys), -1, dtype=int)
         sign = np.ones(len(keys))
@@ -128,6 +132,10 @@ class Mirror:
             key, s = ((ia, ka, ib, kb), 1.0) if ia < ib else ((ib, kb, ia, ka), -1.0)
             image[j] = index.get(key, -1)
             sign[j] = s
+        image.flags.writeable = sign.flags.writeable = False
+        if len(cache) > 256:
+            cache.clear()
+        cache[keys] = (image, sign)
         return image, sign
 
     def symmetrise(self, keys: Sequence[PlaneKey], normal: Array, point: Array) -> tuple[Array, Array]:
@@ -159,29 +167,37 @@ class Mirror:
         """
         image, sign = self.plane_images(keys)
         R, c = self.M3, self.centre
-        rows: list[Array] = []
-        for j in range(len(keys)):
-            i = image[j]
-            if i < j:  # absent, or its orbit was done from the other plane
+        P = len(keys)
+        js = np.flatnonzero(image >= np.arange(P))  # one plane per orbit present in the set
+        if not len(js):
+            return np.zeros((0, 3 * P))
+        i_, s = image[js], sign[js]
+        A = s[:, None, None] * np.einsum("kai,ab,kbj->kij", basis[i_], R, basis[js])  # t_i = A t_j
+        # offset about the centre o_k = n_k . (p_k - c), its increment sigma_k + (E_k t_k) . (p_k - c)
+        lever_j = np.einsum("kaj,ka->kj", basis[js], point[js] - c)
+        lever_i = np.einsum("kaj,ka->kj", basis[i_], point[i_] - c)
+        local = np.zeros((len(js), 3, 6))  # columns: t_i (2), sigma_i, t_j (2), sigma_j
+        local[:, :2, :2] = np.eye(2)
+        local[:, :2, 3:5] = -A
+        local[:, 2, 2] = 1.0
+        local[:, 2, :2] = lever_i
+        local[:, 2, 5] = -s
+        local[:, 2, 3:5] = -s[:, None] * lever_j
+        own = i_ == js  # a plane that is its own image: both column sets are the same
+        out = np.zeros((len(js), 3, 3 * P))
+        keep = np.zeros((len(js), 3), dtype=bool)
+        for subset, width in ((~own, 6), (own, 3)):
+            if not subset.any():
                 continue
-            s = sign[j]
-            A = s * basis[i].T @ R @ basis[j]  # t_i = A t_j
-            block = np.zeros((3, 3 * len(keys)))
-            block[:2, 3 * i : 3 * i + 2] += np.eye(2)
-            block[:2, 3 * j : 3 * j + 2] -= A
-            # offset about the centre o_k = n_k . (p_k - c), its increment sigma_k + (E_k t_k) . (p_k - c)
-            lever_j, lever_i = basis[j].T @ (point[j] - c), basis[i].T @ (point[i] - c)
-            block[2, 3 * i + 2] += 1.0
-            block[2, 3 * i : 3 * i + 2] += lever_i
-            block[2, 3 * j + 2] -= s
-            block[2, 3 * j : 3 * j + 2] -= s * lever_j
-            cols = np.unique([3 * i, 3 * i + 1, 3 * i + 2, 3 * j, 3 * j + 1, 3 * j + 2])
-            _, sv, Vt = np.linalg.svd(block[:, cols], full_matrices=False)
-            for k in np.flatnonzero(sv > _RANK_TOL * max(1.0, sv[0])):
-                row = np.zeros(3 * len(keys))
-                row[cols] = Vt[k]
-                rows.append(row)
-        return np.array(rows).reshape(-1, 3 * len(keys))
+            block = local[subset] if width == 6 else local[subset, :, :3] + local[subset, :, 3:]
+            _, sv, Vt = np.linalg.svd(block, full_matrices=False)
+            base = np.stack([3 * i_[subset], 3 * js[subset]], axis=1) if width == 6 else 3 * js[subset, None]
+            cols = (base[:, :, None] + np.arange(3)).reshape(len(base), -1)
+            rows = np.zeros((len(base), Vt.shape[1], 3 * P))
+            np.put_along_axis(rows, np.broadcast_to(cols[:, None, :], (*Vt.shape[:2], width)), Vt, axis=2)
+            out[subset, : Vt.shape[1]] = rows
+            keep[subset, : Vt.shape[1]] = sv > _RANK_TOL * np.maximum(1.0, sv[:, :1])
+        return out[keep].reshape(-1, 3 * P)
 
     def orbit_any(self, keys: Sequence[PlaneKey], flags: np.ndarray) -> np.ndarray:
         """``flags`` (P,) or-ed with their partners': a decision made for a whole orbit."""
