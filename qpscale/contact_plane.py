@@ -133,19 +133,23 @@ def plane_rows(
     memory = memory or {}
     overlapping = sat.sep[rows] < -refresh if refresh is not None else np.zeros(len(rows), dtype=bool)
     kept = np.zeros(len(rows), dtype=bool)
-    for j, key in enumerate(keys):
-        if key in memory and not overlapping[j]:
-            nm, pm = memory[key]
-            # A remembered plane that separates the pieces worse than their best axis by more
-            # than the margin is stale (it was left behind while the pieces moved on): no step
-            # of its linearised rotation reaches a separating position, and the QP would be
-            # infeasible.  It restarts from the best axis (contact.md sec. 7).
-            worst = min(float(np.min((pm - VA[j]) @ nm)), float(np.min((VB[j] - pm) @ nm)))
-            kept[j] = worst >= sat.sep[rows[j]] - margin
+    known = np.flatnonzero(np.array([key in memory for key in keys], dtype=bool) & ~overlapping)
+    if len(known):
+        nm = np.array([memory[keys[j]][0] for j in known])
+        pm = np.array([memory[keys[j]][1] for j in known])
+        # A remembered plane that separates the pieces worse than their best axis by more than
+        # the margin is stale (it was left behind while the pieces moved on): no step of its
+        # linearised rotation reaches a separating position, and the QP would be infeasible.
+        # It restarts from the best axis (contact.md sec. 7).
+        below_a = np.einsum("pvk,pk->pv", pm[:, None, :] - VA[known], nm).min(axis=1)
+        above_b = np.einsum("pvk,pk->pv", VB[known] - pm[:, None, :], nm).min(axis=1)
+        kept[known] = np.minimum(below_a, above_b) >= sat.sep[rows[known]] - margin
     if mirror is not None:
         kept = ~mirror.orbit_any(keys, ~kept)
-    for k in np.flatnonzero(kept):
-        n[k], p[k] = memory[keys[k]]
+    if kept.any():
+        use = np.flatnonzero(kept)
+        n[use] = np.array([memory[keys[k]][0] for k in use])
+        p[use] = np.array([memory[keys[k]][1] for k in use])
     if mirror is not None:
         n, p = mirror.symmetrise(keys, n, p)
     ga = np.einsum("pk,pvk->pv", n, p[:, None, :] - VA)

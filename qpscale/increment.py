@@ -368,11 +368,12 @@ def _accelerated(
     """
     if cs is None or cs.planes is None or not cs.planes.count:
         return accel.step(q.reshape(-1), dq.reshape(-1)).reshape(q.shape), cs
-    old = cs.planes.state()
-    new = cs.plane_memory or old
-    keys = list(cs.planes.keys)
-    x_pl = np.concatenate([np.r_[old[k][0], old[k][1]] for k in keys])
-    f_pl = np.concatenate([np.r_[new[k][0], new[k][1]] for k in keys]) - x_pl
+    keys = cs.planes.keys
+    x_pl = np.hstack([cs.planes.normal, cs.planes.point]).ravel()
+    new = cs.plane_memory
+    f_pl = np.zeros_like(x_pl)
+    if new:
+        f_pl = np.array([np.r_[new[k][0], new[k][1]] for k in keys]).ravel() - x_pl
     z = accel.step(np.r_[q.reshape(-1), x_pl], np.r_[dq.reshape(-1), f_pl])
     planes = z[q.size :].reshape(-1, 6)
     normals = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)

@@ -148,3 +148,15 @@ def test_a_stale_plane_restarts_from_the_best_axis_and_a_near_one_is_kept():
         j = cs.planes.keys.index(key)
         expected = memory[key][0] if kept else n
         assert np.allclose(cs.planes.normal[j], expected, atol=1e-12)
+
+
+def test_pieces_all_beyond_the_margin_give_no_plane_whatever_is_remembered():
+    # Scales pushed apart by more than the margin have no near piece pair: the set is empty, the
+    # remembered planes are dropped, and nothing fails on the empty selection.
+    patch = Design(rings=1).patch()
+    q = np.zeros((patch.n_scales, 5))
+    fresh = detect_contacts(patch, q)
+    apart = q.copy()
+    apart[:, :2] = 0.5 * patch.centroids  # every gap grows by half a centre distance (>= 1 L)
+    cs = detect_contacts(patch, apart, previous=fresh)
+    assert cs.planes.count == 0 and len(cs.gap) == 0
