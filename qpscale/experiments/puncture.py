@@ -198,6 +198,10 @@ STABILITY_TOL = 1e-6
 # rate of its negative eigenvalue, slowly near the branch point.
 LANDING_MAX_ITER = 3000
 SNAP_RESOLUTION = 1e-7
+# Target error of the secant predictor, in L or rad (``_growth``): the step is sized by it.
+PREDICTOR_ERROR = 1e-3
+# A level that needed more sequential-QP iterations than this halves the next step.
+HARD_LEVEL = 30
 # The failure state's tilt must lie within this fraction of phi_c (issue #5: F_c at phi_c to 1e-6).
 TILT_LOCATED = 1e-6
 
@@ -414,7 +418,8 @@ class _Path:
             last = states[-1]
             if ceiling < np.inf:
                 step = ceiling - last.delta if retest else 0.5 * (ceiling - last.delta)
-            outcome = self.solve(_predict(states, last.delta + step), last.delta + step, len(states))
+            guess = _predict(states, last.delta + step)
+            outcome = self.solve(guess, last.delta + step, len(states))
             if outcome.state is None:
                 assert outcome.failure is not None
                 if step >= 2.0 * min_step:
@@ -488,7 +493,10 @@ class _Path:
             states.append(eq)
             if ceiling == np.inf:
                 cap = _curvature_cap(states[self.smooth_from :])
-                step = min(max_step, step * _growth(eq.iterations), self._remaining(states), cap)
+                predicted = not landed and eq is outcome.state and guess is not last
+                error = float(np.max(np.abs(eq.q - guess.q))) if predicted else None
+                g = _growth(error, eq.iterations)
+                step = min(max_step, step * g, self._remaining(states), cap)
         raise SolverFailure(
             self.setup.sqp.solver,
             "failure tilt not reached",
@@ -547,15 +555,22 @@ def _curvature_cap(states: list[Equilibrium]) -> float:
     return float(np.sqrt(6.0 * SNAP_WORK * abs(c.F) / abs(curvature)))
 
 
-def _growth(iterations: int) -> float:
-    """Step factor from the sequential QP's effort at the last level.
+def _growth(error: float | None, iterations: int) -> float:
+    """Step factor from the secant predictor's error at the last level (sec. 2, Step size).
 
-    The iteration converges linearly from a secant predictor whose error is O(h^2), so its count
-    falls only slowly with the step; where it sits at 9-12 whatever the step (the hinge noise of
-    the 5x5 dart), a step that does not grow there is halved by every harder level and never
-    recovers (the dart's load point (1.73, 0.5) took over 400 increments from tilt 10.5 deg on).
+    The predictor's error is O(h^2), so ``sqrt(PREDICTOR_ERROR / error)`` scales the next step to
+    an error of ``PREDICTOR_ERROR``, by at most a factor 2 either way.  The sequential QP's
+    iteration count is no guide: it converges linearly from the predictor, so the count falls
+    only with log(error), and on hinged planes it sits at 10-17 whatever the step; a rule that
+    halved the step there left the 3x3 dart slanted 60 deg at 45 deg at a tilt of 9.2 deg after
+    400 increments of 5e-4 L.  A level that needed over ``HARD_LEVEL`` iterations halves the step
+    (it came close to failing).  After a landing (``error`` None) the step is kept.
     """
-    return 1.5 if iterations <= 8 else 1.25 if iterations <= 12 else 1.0 if iterations <= 16 else 0.5
+    if iterations > HARD_LEVEL:
+        return 0.5
+    if error is None:
+        return 1.0
+    return 2.0 if error == 0.0 else float(np.clip(np.sqrt(PREDICTOR_ERROR / error), 0.5, 2.0))
 
 
 def _predict(states: list[Equilibrium], delta: float) -> Equilibrium:
