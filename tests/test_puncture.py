@@ -388,3 +388,24 @@ def test_a_step_that_gains_energy_is_flagged_like_one_that_releases_it():
         (150 * 0.05, True),
     ):
         assert path.snapped(a, state(0.11, 1.0, 0.05 + change)) is flagged, change
+
+
+def test_slanted_dart_array_reaches_phi_c_and_its_work_balances():
+    # The 3x3 dart array slanted 60 deg towards 45 deg, at the vertex whose path stopped at a tilt
+    # of 9.2 deg after 400 increments when the step followed the iteration count (levels of 10-17
+    # iterations on hinged planes halved it, puncture.md sec. 2): sized by the predictor's error,
+    # the path reaches phi_c.  Independent check, a conservation law: frictionless contact that
+    # does not penetrate does no work, so the load's work (trapezoidal; the step control keeps its
+    # error within 1e-3 of each step's work) equals the stored energy at failure plus the energy
+    # released at located snaps.
+    design = Design(shape="dart", slant_deg=60.0, slant_dir_deg=45.0, rings=1)
+    setup = PunctureSetup(design=design, probe=False, load_point=(3.2247448713915885, 0.7247448713915885))
+    result = run_puncture(setup)
+    assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
+    _, K = build_model(setup)
+    w, F = result.w_star, result.F_star
+    work = float(np.sum(0.5 * np.diff(w) * (F[1:] + F[:-1])))
+    q = result.states[-1].q.ravel()
+    energy = 0.5 * float(q @ (K @ q))
+    released = sum(e.energy_released for e in result.events if e.kind == "snap")
+    assert work == pytest.approx(energy + released, rel=2e-3)
