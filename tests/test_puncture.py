@@ -115,14 +115,21 @@ def test_work_of_the_load_equals_stored_energy_except_at_located_snaps():
     # path.  The mid-edge path of the 3x3 square ends in a snap (a fold of its symmetric branch,
     # puncture.md sec. 2), which is the failure and not part of the curve: along the curve
     # work - energy changes per increment by the trapezoidal rule's error only, which the step
-    # control keeps within SNAP_WORK (1e-3) of the increment's work (measured 8.8e-4).
+    # control keeps within SNAP_WORK (1e-3) of the increment's work, above the resolution of the
+    # states' energies (each state is within ~10 step tolerances of the exact one, so its energy
+    # within 10 * 1e-8 * |K q|_1): a short step at a small load has W ~ 1e-9 and noise R ~ 1e-11.
     setup = PunctureSetup(design=SMALL, increments=48, load_point=EDGE)
     _, K = build_model(setup)
     result = run_puncture(setup)
     w, F = result.w_star, result.F_star
     step_work = 0.5 * np.diff(w) * (F[1:] + F[:-1])
     energy = np.array([0.5 * s.q.ravel() @ (K @ s.q.ravel()) for s in result.states])
-    assert np.all(np.abs(step_work - np.diff(energy)) <= 1e-3 * step_work)
+    resolution = 10 * setup.sqp.step_tol * np.array([np.abs(K @ s.q.ravel()).sum() for s in result.states])
+    floor = resolution[1:] + resolution[:-1]
+    assert np.all(np.abs(step_work - np.diff(energy)) <= 1e-3 * step_work + floor)
+    # The floor matters only at the start: once the load is of order one, steps meet 1e-3 alone.
+    late = step_work > 1e-4
+    assert late.sum() >= 10 and np.all(np.abs(step_work - np.diff(energy))[late] <= 1e-3 * step_work[late])
     snaps = [e.to_dict() for e in result.events if e.kind == "snap"]
     assert snaps and all(e["energy_released"] > 1e-3 * energy[-1] for e in snaps)
     failure = next(e.to_dict() for e in result.events if e.kind == "failure")

@@ -198,6 +198,9 @@ STABILITY_TOL = 1e-6
 # rate of its negative eigenvalue, slowly near the branch point.
 LANDING_MAX_ITER = 3000
 SNAP_RESOLUTION = 1e-7
+# A converged state lies within this many step tolerances of the exact one (the sequential QP
+# stops at |dq| <= step_tol and contracts at a rate of 0.5-0.9): the energy balance's noise floor.
+STATE_ERROR = 10.0
 # Target error of the secant predictor, in L or rad (``_growth``): the step is sized by it.
 PREDICTOR_ERROR = 1e-3
 # A level that needed more sequential-QP iterations than this halves the next step.
@@ -398,8 +401,20 @@ class _Path:
         or the SQP leaping into a lower basin); R < 0 is an equilibrium holding more energy than
         the load supplied, which no quasi-static path reaches: the SQP leapt into a higher basin
         (seen on the 5x5 dart: a step of 1.4e-5 L to a state of 150 times the stored energy).
+
+        Below what the states can resolve nothing is flagged: each state is converged to
+        ``step_tol`` in q (within ``STATE_ERROR`` steps of it), so each stored energy is known to
+        ``STATE_ERROR step_tol |K q|_1``.  Without that floor a short step at a small load
+        (W ~ 1e-9) was flagged on noise alone, its bisection stopped each increment at a few
+        micro-L, and the 3x3 hexagon array slanted 60 deg at 45 deg ended at a tilt of 0.04 deg
+        after 400 increments (puncture.md sec. 2).
         """
-        return abs(self.released(a, b)) > SNAP_WORK * abs(_work(a, b))
+        floor = STATE_ERROR * self.setup.sqp.step_tol * (self._force_norm(a) + self._force_norm(b))
+        return abs(self.released(a, b)) > SNAP_WORK * abs(_work(a, b)) + floor
+
+    def _force_norm(self, eq: Equilibrium) -> float:
+        """|K q|_1: how much the stored energy moves per unit of error in q."""
+        return float(np.abs(self.K @ eq.q.ravel()).sum())  # type: ignore[operator]
 
     def run(self, states: list[Equilibrium] | None = None, step: float | None = None) -> list[Equilibrium]:
         """Step the load until the tilt reaches phi_c; continue from ``states`` if given.
