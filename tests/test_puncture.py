@@ -397,16 +397,27 @@ def test_a_step_that_gains_energy_is_flagged_like_one_that_releases_it():
         assert path.snapped(a, state(0.11, 1.0, 0.05 + change)) is flagged, change
 
 
-def test_slanted_dart_array_reaches_phi_c_and_its_work_balances():
-    # The 3x3 dart array slanted 60 deg towards 45 deg, at the vertex whose path stopped at a tilt
-    # of 9.2 deg after 400 increments when the step followed the iteration count (levels of 10-17
-    # iterations on hinged planes halved it, puncture.md sec. 2): sized by the predictor's error,
-    # the path reaches phi_c.  Independent check, a conservation law: frictionless contact that
-    # does not penetrate does no work, so the load's work (trapezoidal; the step control keeps its
-    # error within 1e-3 of each step's work) equals the stored energy at failure plus the energy
-    # released at located snaps.
-    design = Design(shape="dart", slant_deg=60.0, slant_dir_deg=45.0, rings=1)
-    setup = PunctureSetup(design=design, probe=False, load_point=(3.2247448713915885, 0.7247448713915885))
+SLANTED_45 = {"slant_deg": 60.0, "slant_dir_deg": 45.0, "rings": 1}
+
+
+@pytest.mark.parametrize(
+    ("design", "point"),
+    [
+        # stopped at 9.2 deg after 400 increments when the step followed the iteration count
+        (Design(shape="dart", **SLANTED_45), (3.2247448713915885, 0.7247448713915885)),
+        # stopped at 0.04 deg when the energy balance flagged noise (puncture.md sec. 2)
+        (Design(shape="hexagon", **SLANTED_45), (0.15017493956804673, 1.8451481107929881)),
+        (Design(shape="triangle", tiling="staggered", **SLANTED_45), (2.744416242694774, 0.3473621960899268)),
+    ],
+    ids=["dart", "hexagon", "triangle-staggered"],
+)
+def test_slanted_arrays_reach_phi_c_and_their_work_balances(design, point):
+    # The 3x3 variants of the hard slanted arrays (the 5x5 ones are slow tests), at vertices whose
+    # paths stalled: each reaches phi_c.  Independent check, a conservation law: frictionless
+    # contact that does not penetrate does no work, so the load's work (trapezoidal; the step
+    # control keeps its error within 1e-3 of each step's work) equals the stored energy at failure
+    # plus the energy released at located snaps.
+    setup = PunctureSetup(design=design, probe=False, load_point=point)
     result = run_puncture(setup)
     assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
     _, K = build_model(setup)
