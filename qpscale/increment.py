@@ -486,12 +486,13 @@ def iterate_level(
             rescues.append(
                 Rescue("qp_retry", delta, increment, f"first status {res.extras.get('first_status')}")
             )
-        if not res.found:
+        x, y, residuals = res.x, res.y, res.residuals
+        if not res.found or x is None or y is None or residuals is None:
             failure = SolverFailure(settings.solver, res.status, increment, res.extras.get("detail", ""))
             return _failed(LevelStatus.QP_FAILED, failure, rescues)
         solve_s += res.build_s + res.solve_s
-        dq = res.x[: q.size].reshape(q.shape)
-        theta = res.x[q.size :]
+        dq = x[: q.size].reshape(q.shape)
+        theta = x[q.size :]
         if cs is not None and cs.planes is not None and len(theta):
             theta = _pinned_only(theta, cs, res.z, violated=settings.plane_damping, mirror=mirror)
             cs = replace(cs, plane_memory=cs.planes.advanced(theta))
@@ -507,12 +508,12 @@ def iterate_level(
             state = Equilibrium(
                 q=q,
                 delta=delta,
-                F=float(res.y[0]),
+                F=float(y[0]),
                 contacts=cs,
                 lam=np.asarray(lam),
                 iterations=it,
                 penetration=pen,
-                residuals=dict(res.residuals),
+                residuals=dict(residuals),
                 build_s=build_s,
                 solve_s=solve_s,
                 tightened=accuracy != settings.accuracy,

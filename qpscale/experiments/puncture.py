@@ -265,6 +265,8 @@ class _Path:
         from ..penalty import PenaltySettings, solve_equilibrium_penalty
 
         settings = self.setup.penalty if self.setup.penalty is not None else PenaltySettings()
+        if not isinstance(settings, PenaltySettings):
+            raise InvalidDesign("penalty", type(settings).__name__, "PenaltySettings or None")
         try:
             state = solve_equilibrium_penalty(
                 self.patch,
