@@ -74,6 +74,9 @@ RANGES: dict[str, str] = {
     "--time-limit": "(0, inf) s",
     "--fuzz": "integers in [0, 100000]",
     "--max-memory-gb": "(0, inf) GB (default $QPSCALE_MAX_MEMORY_GB or 4)",
+    "--png": "a file path; its directory is created before the run",
+    "--vtk": "a directory, created before the run; an earlier series there is replaced",
+    "--out": "a directory, created before the run",
 }
 
 

@@ -317,7 +317,7 @@ def run_all(
 ) -> dict:
     """The whole bench: scenes x methods, work-precision chart, stability map, fuzz (full only).
 
-    Returns the JSON payload of ``qpscale bench`` (SPEC.md contract plus extras).
+    Returns the JSON payload of ``qpscale bench`` (docs/cli.md contract plus extras).
     """
     from .bench import default_methods, full_scenes, quick_scenes, run_bench, skipped_methods
 
