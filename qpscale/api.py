@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from . import validation as v
-from .errors import InvalidDesign, QpscaleWarning
+from .errors import InvalidDesign, OutputNotWritten
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -179,7 +179,7 @@ def _write_optional(what: str, writer: Callable[[], Any], errors: list[str]) -> 
     except OSError as exc:
         message = f"{what}: could not write: {exc.strerror or exc}"
         errors.append(message)
-        warnings.warn(message, QpscaleWarning, stacklevel=3)
+        warnings.warn(message, OutputNotWritten, stacklevel=3)
         return None
 
 

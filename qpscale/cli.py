@@ -18,6 +18,7 @@ import json
 import os
 import signal
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from functools import wraps
 from pathlib import Path
@@ -28,7 +29,7 @@ from rich.console import Console
 from typer.core import TyperGroup
 
 from . import __version__
-from .errors import InvalidDesign, QpscaleError, SolverFailure, SolverUnavailable
+from .errors import InvalidDesign, OutputNotWritten, QpscaleError, SolverFailure, SolverUnavailable
 from .validation import FLAG_OF, Conflict
 
 # soft_wrap: a summary piped to a file or another program is one line per result, never cut in the
@@ -95,14 +96,14 @@ def _one_line(text: str) -> str:
 def usage_error_line(exc: Any) -> str:
     """One line for a click usage error: the flag, the problem and the flag's allowed range."""
     param = getattr(exc, "param", None)
-    flag = None
+    flag = getattr(exc, "option_name", None)  # BadOptionUsage, NoSuchOption
     if param is not None and getattr(param, "opts", None):
         flag = max(param.opts, key=len)
     message = _one_line(exc.format_message())
     if flag is None:
         return f"error: {message}"
     # click says "Invalid value for '--slant': 'x' is not a valid float."; keep the reason only.
-    for prefix in (f"Invalid value for '{flag}': ", f"Invalid value for {flag}: "):
+    for prefix in (f"Invalid value for '{flag}': ", f"Invalid value for {flag}: ", f"Option '{flag}' "):
         message = message.replace(prefix, "")
     allowed = RANGES.get(flag)
     return f"error: {flag}: {message.rstrip('.')}" + (f"; allowed: {allowed}" if allowed else "")
@@ -215,10 +216,13 @@ def handles_errors(func: F) -> F:
     @wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
-            if kwargs.get("as_json"):
-                with json_stdout():
-                    return func(*args, **kwargs)
-            return func(*args, **kwargs)
+            with warnings.catch_warnings():
+                # A failed optional output is reported as one error line by finish(), not twice.
+                warnings.simplefilter("ignore", OutputNotWritten)
+                if kwargs.get("as_json"):
+                    with json_stdout():
+                        return func(*args, **kwargs)
+                return func(*args, **kwargs)
         except Conflict as exc:
             first, second = (flag_of(p) for p in exc.parameters)
             _fail(EXIT_INVALID, f"{first} and {second}: cannot be combined: {exc.detail}")
