@@ -261,6 +261,11 @@ def emit(payload: dict[str, Any], as_json: bool, summary: Callable[[dict[str, An
         summary(payload)
 
 
+def _fmt(value: Any, spec: str) -> str:
+    """A number for a summary; a missing one (null in the JSON) reads "n/a", never "nan"."""
+    return "n/a" if value is None else format(value, spec)
+
+
 def finish(report: Any, as_json: bool, summary: Callable[[dict[str, Any]], None]) -> None:
     """Print a report; then, if an optional output (png, vtk) could not be written, say so on
     stderr and exit 3: the computed result is printed first, never lost for a file."""
@@ -429,14 +434,15 @@ def puncture(
         )
 
     def summary(p: dict[str, Any]) -> None:
-        extra = f" = {p['Fc_N']:.4g} N" if "Fc_N" in p else ""
+        extra = f" = {_fmt(p.get('Fc_N'), '.4g')} N" if "Fc_N" in p else ""
         branch = " (branched: followed the asymmetric path)" if (p["branch"] or {}).get("branched") else ""
         console.print(
             f"[bold]{p['shape']} ({p['tiling']})[/], {p['n_scales']} scales, {p['interaction']}: "
-            f"F_c* = {p['Fc_star']:.6g}{extra} at tilt {p['tilt_deg']:.4g} deg, load point "
-            f"({p['load_point'][0]:.3f}, {p['load_point'][1]:.3f}), delta_c* = {p['delta_c_star']:.4g}"
-            f"{branch}; {p['increments']} increments, {p['qp_solves']} sequential QPs, "
-            f"max penetration {p['max_penetration']:.2g} L, {p['wall_s']:.2f} s"
+            f"F_c* = {_fmt(p['Fc_star'], '.6g')}{extra} at tilt {_fmt(p['tilt_deg'], '.4g')} deg, load point "
+            f"({_fmt(p['load_point'][0], '.3f')}, {_fmt(p['load_point'][1], '.3f')}), "
+            f"delta_c* = {_fmt(p['delta_c_star'], '.4g')}{branch}; {p['increments']} increments, "
+            f"{p['qp_solves']} sequential QPs, max penetration {_fmt(p['max_penetration'], '.2g')} L, "
+            f"{_fmt(p['wall_s'], '.2f')} s"
         )
 
     finish(report, as_json, summary)
@@ -499,7 +505,7 @@ def flexure(
         design = "membrane" if p["mode"] == "bare" else f"{p['shape']} ({p['tiling']})"
         console.print(
             f"[bold]{p['mode']}[/] {design}, load line {p['load_line']}: "
-            f"C_f* = {p['Cf_star']:.5g}, {p['n_scales']} scales, {p['wall_s']:.2f} s"
+            f"C_f* = {_fmt(p['Cf_star'], '.5g')}, {p['n_scales']} scales, {_fmt(p['wall_s'], '.2f')} s"
         )
 
     finish(report, as_json, summary)
@@ -665,7 +671,7 @@ def bench(
     check_workers(v.integer("workers", workers, 1, 1024))
     n_fuzz = v.integer("fuzz", fuzz_n, 0, 100_000)
     out_dir = v.output_dir("out", out)
-    with _progress("bench") as bar:
+    with _progress("bench") as bar, terminate_as_interrupt():
         task = bar.add_task("bench", total=None)
         payload = run_all(
             out_dir,

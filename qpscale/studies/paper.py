@@ -24,6 +24,7 @@ import pandas as pd
 
 from .paper_run import run_scene
 from .paper_scenes import Scene, paper_scenes
+from .parallel import terminate_pool
 
 MAX_WORKERS = 2
 # Wall-time limit of one scene in seconds (full run, quick run): a scene over it is recorded with
@@ -96,21 +97,6 @@ def run_scenes(
             raise
         pool.shutdown(wait=True)
     return [rows[s.key] for s in scenes], data
-
-
-def terminate_pool(pool: ProcessPoolExecutor, timeout_s: float = 5.0) -> None:
-    """Stop a process pool now: pending scenes cancelled, running workers terminated and reaped."""
-    processes = list((getattr(pool, "_processes", None) or {}).values())
-    for proc in processes:
-        with contextlib.suppress(Exception):
-            proc.terminate()
-    pool.shutdown(wait=False, cancel_futures=True)
-    for proc in processes:
-        with contextlib.suppress(Exception):
-            proc.join(timeout_s)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(timeout_s)
 
 
 def _die_with_parent() -> None:

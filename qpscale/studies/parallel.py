@@ -9,6 +9,7 @@ mean what they mean in a serial run as long as ``workers`` does not exceed the m
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 from collections.abc import Callable, Sequence
@@ -51,11 +52,33 @@ def pmap(
         return out
     results: list[Any] = [None] * len(tasks)
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+    try:
         futures = {pool.submit(fn, *task): i for i, task in enumerate(tasks)}
         for done, fut in enumerate(as_completed(futures), start=1):
             i = futures[fut]
             results[i] = fut.result()
             if progress:
                 progress(f"{done}/{len(tasks)} " + (label(tasks[i]) if label else ""))
+    except BaseException:
+        # Ctrl-C, SIGTERM (the CLI raises it as an interrupt) or a task's error: no worker may
+        # keep computing a task whose result nobody will read.
+        terminate_pool(pool)
+        raise
+    pool.shutdown(wait=True)
     return results
+
+
+def terminate_pool(pool: ProcessPoolExecutor, timeout_s: float = 5.0) -> None:
+    """Stop a process pool now: pending tasks cancelled, running workers terminated and reaped."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for proc in processes:
+        with contextlib.suppress(Exception):
+            proc.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        with contextlib.suppress(Exception):
+            proc.join(timeout_s)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(timeout_s)
