@@ -425,6 +425,7 @@ def test_paper_killed_leaves_no_worker_and_no_complete_looking_table(tmp_path, s
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         env=env,
+        start_new_session=True,  # its own process group, as a shell job has
     )
     workers: set[int] = set()
     deadline = time.monotonic() + 60
@@ -434,7 +435,10 @@ def test_paper_killed_leaves_no_worker_and_no_complete_looking_table(tmp_path, s
     time.sleep(2.0)
     workers |= _children(proc.pid)
     assert workers, "the pool never started"
-    proc.send_signal(sig)
+    if sig == signal.SIGINT:
+        os.killpg(proc.pid, sig)  # Ctrl-C in a terminal: the parent and every worker get SIGINT
+    else:
+        proc.send_signal(sig)  # kill PID / a batch system: the parent alone
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == (143 if sig == signal.SIGTERM else 130), err.decode()
     assert b"Traceback" not in err, err.decode()

@@ -8,11 +8,8 @@ scene runs in ``paper_run``; the figures are drawn in ``figures``.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import signal
-import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -24,7 +21,7 @@ import pandas as pd
 
 from .paper_run import run_scene
 from .paper_scenes import Scene, paper_scenes
-from .parallel import terminate_pool
+from .parallel import terminate_pool, worker_init
 
 MAX_WORKERS = 2
 # Wall-time limit of one scene in seconds (full run, quick run): a scene over it is recorded with
@@ -87,7 +84,7 @@ def run_scenes(
         for s in scenes:
             done(s, *run_scene(s, limit_s))
     else:
-        pool = ProcessPoolExecutor(max_workers=min(workers, MAX_WORKERS), initializer=_die_with_parent)
+        pool = ProcessPoolExecutor(max_workers=min(workers, MAX_WORKERS), initializer=worker_init)
         try:
             futures = {pool.submit(run_scene, s, limit_s): s for s in scenes}
             for fut in as_completed(futures):
@@ -97,17 +94,6 @@ def run_scenes(
             raise
         pool.shutdown(wait=True)
     return [rows[s.key] for s in scenes], data
-
-
-def _die_with_parent() -> None:
-    """Worker initializer (Linux): the kernel sends the worker SIGTERM when its parent dies, so a
-    parent killed without a chance to clean up (SIGKILL) leaves no orphan computing for minutes."""
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(Exception):
-            import ctypes
-
-            PR_SET_PDEATHSIG = 1
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def _lookup(table: pd.DataFrame, mask: pd.Series, column: str) -> float:
