@@ -23,6 +23,7 @@ import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from . import validation as v
@@ -92,6 +93,10 @@ class _Report:
 
     payload: Mapping[str, Any] = field(repr=False)
     output_errors: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        # Read-only view: a frozen result whose fields could still be edited in place is not frozen.
+        object.__setattr__(self, "payload", MappingProxyType(dict(self.payload)))
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object of the command line (a fresh copy: field names per docs/cli.md)."""

@@ -127,7 +127,7 @@ class OneLineErrors(TyperGroup):
                 code = EXIT_OK
             else:
                 _print_error(usage_error_line(exc))
-                code = int(getattr(exc, "exit_code", EXIT_INVALID) or EXIT_INVALID)
+                code = EXIT_INVALID  # every click error is about the input (click's FileError says 1)
         except typer.Abort:
             code = EXIT_INTERRUPTED
         except OSError as exc:

@@ -67,6 +67,11 @@ def test_puncture_isolated_matches_the_cli_and_the_rigid_lever():
     assert report.Fc_star == pytest.approx(0.2947, abs=5e-4)
     with pytest.raises(dataclasses.FrozenInstanceError):
         report.output_errors = ("x",)  # type: ignore[misc]
+    with pytest.raises(TypeError):
+        report.payload["Fc_star"] = 1.0  # type: ignore[index]
+    changed = report.to_dict()
+    changed["Fc_star"] = 1.0  # a copy: the report keeps its value
+    assert report.Fc_star != 1.0
 
 
 def test_flexure_bare_matches_the_cli():
