@@ -377,6 +377,7 @@ def puncture(
     L_mm: float | None = None,
     vtk: str | Path | None = None,
     max_memory_gb: float | None = None,
+    max_minutes: float | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> PunctureReport:
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c.
@@ -416,6 +417,8 @@ def puncture(
         Directory for a ParaView series (.pvd + one .vtu per state); created before the run.
     max_memory_gb : float or None
         Refuse a scene whose estimated memory exceeds this (default ``$QPSCALE_MAX_MEMORY_GB`` or 4).
+    max_minutes : float or None
+        Refuse a scene whose estimated time exceeds this (default ``$QPSCALE_MAX_MINUTES`` or 60).
     progress : callable or None
         Called with a short message as the path advances.
 
@@ -460,6 +463,13 @@ def puncture(
     v.memory(
         v.puncture_memory_gb(patch.n_scales, len(patch.contact_pairs)),
         v.max_memory_gb(max_memory_gb),
+        "rings",
+        n_rings,
+        f"a patch of {patch.n_scales} scales",
+    )
+    v.duration(
+        v.puncture_time_s(patch.n_scales, len(patch.contact_pairs), bool(probe)),
+        v.max_minutes(max_minutes),
         "rings",
         n_rings,
         f"a patch of {patch.n_scales} scales",
@@ -542,6 +552,7 @@ def flexure(
     formulation: str = "plane",
     vtk: str | Path | None = None,
     max_memory_gb: float | None = None,
+    max_minutes: float | None = None,
 ) -> FlexureReport:
     """Three-point bending of the membrane (10 L x 10 L x 1.5 L, span 8 L): bare, one scale, or
     covered with scales; the compliance C_f* and the force-deflection curve.
@@ -566,6 +577,8 @@ def flexure(
         Directory for a ParaView series; created before the run.
     max_memory_gb : float or None
         Refuse a mesh whose estimated memory exceeds this (default ``$QPSCALE_MAX_MEMORY_GB`` or 4).
+    max_minutes : float or None
+        Refuse a mesh whose estimated time exceeds this (default ``$QPSCALE_MAX_MINUTES`` or 60).
 
     Returns
     -------
@@ -590,6 +603,7 @@ def flexure(
     vtk_dir = v.output_dir("vtk", vtk) if vtk is not None else None
     nz = max(2, int(round(1.5 / h)))
     v.memory(v.flexure_memory_gb(h, nz), v.max_memory_gb(max_memory_gb), "mesh_h", h, "the membrane mesh")
+    v.duration(v.flexure_time_s(h, nz), v.max_minutes(max_minutes), "mesh_h", h, "the membrane mesh")
     design = _design(values, DEFAULT_RINGS)
     mode = "bare" if bare else "isolated" if isolated else "scaled"
 

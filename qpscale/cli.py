@@ -75,6 +75,7 @@ RANGES: dict[str, str] = {
     "--time-limit": "(0, inf) s",
     "--fuzz": "integers in [0, 100000]",
     "--max-memory-gb": "(0, inf) GB (default $QPSCALE_MAX_MEMORY_GB or 4)",
+    "--max-minutes": "(0, inf) min (default $QPSCALE_MAX_MINUTES or 60)",
     "--png": "a file path; its directory is created before the run",
     "--vtk": "a directory, created before the run; an earlier series there is replaced",
     "--out": "a directory, created before the run",
@@ -307,6 +308,9 @@ JsonOpt = typer.Option(False, "--json", help="Print one JSON object (fields: doc
 MemoryOpt = typer.Option(
     None, "--max-memory-gb", help=_help("--max-memory-gb", "Refuse a scene estimated to need more memory.")
 )
+MinutesOpt = typer.Option(
+    None, "--max-minutes", help=_help("--max-minutes", "Refuse a scene estimated to take longer.")
+)
 
 
 @app.command()
@@ -402,6 +406,7 @@ def puncture(
     ),
     vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
     max_memory_gb: float | None = MemoryOpt,
+    max_minutes: float | None = MinutesOpt,
     as_json: bool = JsonOpt,
 ) -> None:
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c."""
@@ -430,6 +435,7 @@ def puncture(
             L_mm=L_mm,
             vtk=vtk,
             max_memory_gb=max_memory_gb,
+            max_minutes=max_minutes,
             progress=lambda msg: bar.update(task, description=f"puncture: {msg}"),
         )
 
@@ -478,6 +484,7 @@ def flexure(
     ),
     vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
     max_memory_gb: float | None = MemoryOpt,
+    max_minutes: float | None = MinutesOpt,
     as_json: bool = JsonOpt,
 ) -> None:
     """Flexure: three-point bending of the membrane (bare, one scale, or covered), C_f*."""
@@ -499,6 +506,7 @@ def flexure(
         formulation=formulation,
         vtk=vtk,
         max_memory_gb=max_memory_gb,
+        max_minutes=max_minutes,
     )
 
     def summary(p: dict[str, Any]) -> None:

@@ -3,8 +3,9 @@
 Every parameter a user can give is checked here, before any work: finite numbers only, each in
 its documented range; output paths are checked (their directories created) before the
 computation; flags that contradict each other are refused; and a scene whose estimated memory
-exceeds the limit (``--max-memory-gb``, ``$QPSCALE_MAX_MEMORY_GB``, default 4 GB) is refused
-with the estimate.  Errors are :class:`~qpscale.errors.InvalidDesign` naming the API parameter;
+exceeds the limit (``--max-memory-gb``, ``$QPSCALE_MAX_MEMORY_GB``, default 4 GB) or whose
+estimated time exceeds ``--max-minutes`` (``$QPSCALE_MAX_MINUTES``, default 60) is refused with
+the estimate.  Errors are :class:`~qpscale.errors.InvalidDesign` naming the API parameter;
 :data:`FLAG_OF` names the command-line flag it comes from, so that the CLI's one-line error
 names what the user typed.
 """
@@ -56,6 +57,7 @@ FLAG_OF: dict[str, str] = {
     "time_limit": "--time-limit",
     "fuzz": "--fuzz",
     "max_memory_gb": "--max-memory-gb",
+    "max_minutes": "--max-minutes",
     "smoke": "--smoke",
     "quick": "--quick",
 }
@@ -71,6 +73,8 @@ MAX_RINGS = 50  # Design's own bound; the memory estimate is the real limit on a
 MESH_H_RANGE = (0.05, 2.0)  # in L; coarser than 2 L leaves fewer than 5 elements over the 10 L block
 DEFAULT_MAX_MEMORY_GB = 4.0
 MEMORY_ENV = "QPSCALE_MAX_MEMORY_GB"
+DEFAULT_MAX_MINUTES = 60.0
+MINUTES_ENV = "QPSCALE_MAX_MINUTES"
 ACCURACY_WORDS = ("high", "mid", "low")
 ACCURACY_RANGE = (1e-12, 1e-2)
 
@@ -311,4 +315,51 @@ def memory(estimate_gb: float, limit_gb: float, parameter: str, value: object, w
             "",
             f"{what} needs about {estimate_gb:.3g} GB, over the memory limit of {limit_gb:g} GB "
             f"(--max-memory-gb or ${MEMORY_ENV})",
+        )
+
+
+def max_minutes(value: object = None) -> float:
+    """The time limit in minutes: ``value``, else ``$QPSCALE_MAX_MINUTES``, else 60."""
+    if value is None:
+        env = os.environ.get(MINUTES_ENV)
+        if env is None:
+            return DEFAULT_MAX_MINUTES
+        try:
+            value = float(env)
+        except ValueError:
+            raise InvalidDesign(MINUTES_ENV, env, "a number of minutes in (0, inf)") from None
+    return real("max_minutes", value, 0.0, None, lo_open=True, unit="min")
+
+
+def puncture_time_s(n_scales: int, n_contact_pairs: int, probe: bool = True) -> float:
+    """An upper estimate of a puncture run's wall time on one core, seconds.
+
+    300 sequential QPs at 6 ms per scale each (measured 3.4-5.3 ms per scale per QP on the 5x5, 7x7
+    and 9x9 square arrays, which took 104-260 QPs), plus with the stability probe 80 states of a
+    dense eigen-decomposition and two products, 3 N^3 flops at 4e9 flop/s (numpy's eigh measured
+    2.4-4.4 GFLOP/s on one core), N = 5 n_scales + 3 n_contact_pairs.  Measured runs took 8 s,
+    69 s and 68 s against estimates of 47 s, 110 s and 255 s.
+    """
+    N = 5 * n_scales + 3 * n_contact_pairs
+    qp = 300 * 0.006 * n_scales
+    return qp + (80 * 3.0 * N**3 / 4e9 if probe else 0.0)
+
+
+def flexure_time_s(mesh_h: float, nz: int, length: float = 10.0, width: float = 10.0) -> float:
+    """An upper estimate of a flexure run's wall time on one core, seconds: 1.5 ms per unknown of
+    the membrane (the bare membrane measured 0.25 ms at h = 0.5 L and 0.26 ms at 0.25 L; a covered
+    one adds the scales' contact, 2.7 s at h = 0.5 L, i.e. 0.5 ms)."""
+    nx, ny = math.ceil(length / mesh_h), math.ceil(width / mesh_h)
+    return 1.5e-3 * 3 * (nx + 1) * (ny + 1) * (nz + 1)
+
+
+def duration(estimate_s: float, limit_min: float, parameter: str, value: object, what: str) -> None:
+    """Refuse a run whose estimated time exceeds the limit, naming the parameter that sets it."""
+    if estimate_s > 60.0 * limit_min:
+        raise InvalidDesign(
+            parameter,
+            value,
+            "",
+            f"{what} is estimated to take up to {estimate_s / 60:.3g} min, over the time limit of "
+            f"{limit_min:g} min (--max-minutes or ${MINUTES_ENV})",
         )

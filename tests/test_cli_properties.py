@@ -45,8 +45,9 @@ NUMERIC_FLAGS = {
     "geometry": ["--slant", "--slant-dir", "--gap", "--thickness", "--rings"],
     "substrate": ["--nu", "--refinement", "--gap"],
     "puncture": ["--slant", "--slant-dir", "--gap", "--thickness", "--rings", "--coupling-factor", "--phi-c",
-                 "--nu", "--E-s", "--L-mm", "--max-memory-gb", "--accuracy"],
-    "flexure": ["--slant", "--slant-dir", "--gap", "--thickness", "--nu-m", "--mesh-h", "--max-memory-gb"],
+                 "--nu", "--E-s", "--L-mm", "--max-memory-gb", "--max-minutes", "--accuracy"],
+    "flexure": ["--slant", "--slant-dir", "--gap", "--thickness", "--nu-m", "--mesh-h", "--max-memory-gb",
+                "--max-minutes"],
 }  # fmt: skip
 WORD_FLAGS = {
     "geometry": ["--shape", "--tiling"],

@@ -244,6 +244,34 @@ def test_memory_limit_from_the_environment(no_work, monkeypatch):
     assert result.exit_code == 2 and v.MEMORY_ENV in one_error_line(result)
 
 
+def test_time_estimate_bounds_the_measured_runs_and_refuses_long_scenes(no_work, monkeypatch):
+    # Measured corner-loaded square arrays (probe on, one core): 5x5 8.8 s, 7x7 69 s, 9x9 68 s.  The
+    # estimate must not fall below a measurement (it refuses runs, it must not let a long one
+    # through on a machine like this one) and stays within a factor 10 of it.
+    from qpscale.tiling import Design
+
+    for rings, measured in ((2, 8.8), (3, 69.0), (4, 68.0)):
+        patch = Design(rings=rings).patch()
+        est = v.puncture_time_s(patch.n_scales, len(patch.contact_pairs))
+        assert measured <= est <= 10 * measured, (rings, est)
+    result = run("puncture", "--rings", "8")  # 289 scales: ~107 min, within the memory limit
+    assert result.exit_code == 2
+    line = one_error_line(result)
+    assert line.startswith("error: --rings:") and "--max-minutes" in line
+    monkeypatch.setenv(v.MINUTES_ENV, "0.01")
+    result = run("flexure", "--mesh-h", "0.5")
+    assert result.exit_code == 2 and one_error_line(result).startswith("error: --mesh-h:")
+    # Raised limit: validation lets it through (to the stub, which fails with a solver status).
+    import qpscale.experiments.puncture as pu
+    from qpscale.errors import SolverFailure
+
+    def stub(*a, **k):
+        raise SolverFailure("stub", "not run")
+
+    monkeypatch.setattr(pu, "run_puncture", stub)
+    assert run("puncture", "--rings", "8", "--max-minutes", "200").exit_code == 3
+
+
 def test_fine_mesh_refused_and_estimate_against_measurements(no_work):
     # Measured peaks (docs/cli.md): 0.20 GB at h = 0.5 (nz 3), 0.81 GB at h = 0.25 (nz 6); the
     # estimate must not fall below them and must stay within a factor 2 of them.
