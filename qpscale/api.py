@@ -46,6 +46,8 @@ __all__ = [
 ]
 
 DEFAULT_RINGS = 2
+# Formats matplotlib writes without extra packages ("" is drawn as PNG).
+DRAWING_SUFFIXES = ("", ".png", ".svg", ".pdf")
 DEFAULT_L_MM = 2.0
 DOF_KEYS = ("Kx", "Ky", "Kz", "Kphix", "Kphiy")
 DESIGN_DEFAULTS: dict[str, Any] = {
@@ -231,6 +233,8 @@ def geometry(
     values = v.design_values(shape, tiling, slant_deg, slant_dir_deg, gap, thickness)
     n_rings = v.integer("rings", rings, 0, v.MAX_RINGS)
     png_path = v.output_file("png", png) if png is not None else None
+    if png_path is not None and png_path.suffix.lower() not in DRAWING_SUFFIXES:
+        raise InvalidDesign("png", str(png_path), "a file ending in " + ", ".join(DRAWING_SUFFIXES[1:]))
     design = _design(values, n_rings)
     from .tiling import max_overlap_area, min_gap
 

@@ -76,7 +76,7 @@ RANGES: dict[str, str] = {
     "--fuzz": "integers in [0, 100000]",
     "--max-memory-gb": "(0, inf) GB (default $QPSCALE_MAX_MEMORY_GB or 4)",
     "--max-minutes": "(0, inf) min (default $QPSCALE_MAX_MINUTES or 60)",
-    "--png": "a file path; its directory is created before the run",
+    "--png": "a .png, .svg or .pdf file path; its directory is created before the run",
     "--vtk": "a directory, created before the run; an earlier series there is replaced",
     "--out": "a directory, created before the run",
 }

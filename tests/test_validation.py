@@ -132,6 +132,13 @@ def test_vtk_onto_an_existing_file_is_refused_before_the_run(no_work, tmp_path, 
     assert target.read_text() == "a file"
 
 
+def test_drawing_format_checked_before_the_patch_is_built(tmp_path):
+    result = run("geometry", "--png", str(tmp_path / "patch.xyz"))
+    assert result.exit_code == 2 and one_error_line(result).startswith("error: --png:")
+    assert run("geometry", "--rings", "0", "--png", str(tmp_path / "p.svg")).exit_code == 0
+    assert (tmp_path / "p.svg").read_text().lstrip().startswith("<?xml")
+
+
 def test_png_onto_a_directory_and_out_onto_a_file_are_refused(tmp_path):
     result = run("geometry", "--png", str(tmp_path))
     assert result.exit_code == 2 and one_error_line(result).startswith("error: --png:")
