@@ -1,66 +1,179 @@
 """The ``qpscale`` command line (typer).  The only module that prints or sets exit codes.
 
-Each subcommand prints a human summary, or one JSON object with ``--json``; field names
-follow the contract in SPEC.md.  Invalid input exits with status 2 and one line on stderr
-naming the parameter; a solver failure exits with status 3 and the solver's status.
-It implements no formulation: each command calls the module that does, which names its
-formulations/ file.
+Each subcommand prints a human summary, or one JSON object with ``--json``; field names follow
+the contract in docs/cli.md (tested against this module by tests/test_docs.py).  Every command
+calls :mod:`qpscale.api` or a study, which validate their input through :mod:`qpscale.validation`
+before any work.  Exit status: 0 done; 2 invalid input, one line ``error: --flag: ...`` on stderr
+(parse errors included: :class:`OneLineErrors` replaces click's boxed usage errors); 3 the run
+failed (a solver's status, an output that could not be written: the JSON result is still
+printed); 4 an internal error (a bug: one line, ``QPSCALE_DEBUG=1`` shows the traceback); 130
+interrupted.  It implements no formulation.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
-import math
 import os
+import signal
 import sys
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Sequence
 from functools import wraps
 from pathlib import Path
 from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
+from typer.core import TyperGroup
 
 from . import __version__
-from .errors import InvalidDesign, QpscaleError, SolverFailure, SolverUnavailable
-from .tiling import Design, max_overlap_area, min_gap
+from .errors import InvalidDesign, OutputNotWritten, QpscaleError, SolverFailure, SolverUnavailable
+from .validation import FLAG_OF, Conflict
 
-app = typer.Typer(
-    add_completion=False,
-    no_args_is_help=True,
-    help="3D mechanics of scaled skins: exact contact as a QP per load increment.",
-)
-console = Console()
-err_console = Console(stderr=True)
+# soft_wrap: a summary piped to a file or another program is one line per result, never cut in the
+# middle of a number at 80 columns.
+console = Console(soft_wrap=True)
+err_console = Console(stderr=True, soft_wrap=True)
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+EXIT_OK = 0
 EXIT_INVALID = 2
-EXIT_SOLVER = 3
+EXIT_FAILED = 3
+EXIT_INTERNAL = 4
+EXIT_SOLVER = EXIT_FAILED  # former name
+EXIT_INTERRUPTED = 130
+
+# The allowed range of every flag, as the help texts and the one-line parse errors state it
+# (docs/cli.md copies this table; tests/test_docs.py checks the copy).
+RANGES: dict[str, str] = {
+    "--shape": "{triangle, square, trapezoid, dart, hexagon}",
+    "--tiling": "{arrayed, staggered} for triangle, square, trapezoid; chevron (dart); honeycomb (hexagon)",
+    "--slant": "[0, 90) deg, with t tan(alpha) <= 10 L",
+    "--slant-dir": "[0, 360) deg from +x",
+    "--gap": "[0, 1) L",
+    "--thickness": "(0, 100] L",
+    "--rings": "integers in [0, 50] (puncture: within the memory and time limits)",
+    "--interaction": "{full, substrate, contact}",
+    "--coupling-factor": "[0, 1]",
+    "--solver": "an installed backend (clarabel, osqp, cvxpy, qpsolvers:<name>) or penalty",
+    "--accuracy": "{high, mid, low} or a number in [1e-12, 0.01]",
+    "--phi-c": "(0, 60] deg",
+    "--nu": "[0, 0.5]",
+    "--nu-m": "[0, 0.5]",
+    "--load-point": "two numbers x y in L on the centre scale's top face",
+    "--E-s": "(0, 1e12] Pa",
+    "--L-mm": "(0, 1e6] mm",
+    "--load-line": "{x, y}",
+    "--mesh-h": "[0.05, 2] L, within the memory and time limits",
+    "--formulation": "{plane, feature}",
+    "--refinement": "integers in [2, 16]",
+    "--workers": "integers from 1 to the number of cores (paper: 1 or 2)",
+    "--scene-time-limit": "[0, inf) s, 0 for none",
+    "--time-limit": "(0, inf) s",
+    "--fuzz": "integers in [0, 100000]",
+    "--max-memory-gb": "(0, inf) GB (default $QPSCALE_MAX_MEMORY_GB or 4)",
+    "--max-minutes": "(0, inf) min (default $QPSCALE_MAX_MINUTES or 60)",
+    "--png": "a .png, .svg or .pdf file path; its directory is created before the run",
+    "--vtk": "a directory, created before the run; an earlier series there is replaced",
+    "--out": "a directory, created before the run",
+}
+
+
+def _click_exception_class() -> type[BaseException]:
+    """click's ClickException, wherever this typer keeps click (vendored in recent versions)."""
+    return next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
+ClickException = _click_exception_class()
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def usage_error_line(exc: Any) -> str:
+    """One line for a click usage error: the flag, the problem and the flag's allowed range."""
+    param = getattr(exc, "param", None)
+    flag = getattr(exc, "option_name", None)  # BadOptionUsage, NoSuchOption
+    if param is not None and getattr(param, "opts", None):
+        flag = max(param.opts, key=len)
+    message = _one_line(exc.format_message())
+    if flag is None:
+        return f"error: {message}"
+    # click says "Invalid value for '--slant': 'x' is not a valid float."; keep the reason only.
+    for prefix in (f"Invalid value for '{flag}': ", f"Invalid value for {flag}: ", f"Option '{flag}' "):
+        message = message.replace(prefix, "")
+    allowed = RANGES.get(flag)
+    return f"error: {flag}: {message.rstrip('.')}" + (f"; allowed: {allowed}" if allowed else "")
+
+
+class OneLineErrors(TyperGroup):
+    """The command group with one-line errors: a usage error (unknown option, a value that does not
+    parse, a missing argument) prints ``error: --flag: ...`` with the range and exits 2, instead
+    of click's multi-line box; a broken pipe or full disk on stdout exits 3 without a traceback."""
+
+    def main(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, prog_name: str | None = None, **extra: Any
+    ) -> Any:
+        standalone = extra.pop("standalone_mode", True)
+        extra["standalone_mode"] = False
+        try:
+            rv = super().main(args, prog_name, **extra)
+            code = rv if isinstance(rv, int) else EXIT_OK
+        except ClickException as exc:
+            if type(exc).__name__ == "NoArgsIsHelpError":  # typer printed the help already
+                code = EXIT_OK
+            else:
+                _print_error(usage_error_line(exc))
+                code = EXIT_INVALID  # every click error is about the input (click's FileError says 1)
+        except typer.Abort:
+            code = EXIT_INTERRUPTED
+        except OSError as exc:
+            code = _output_failure(exc)
+        if not standalone:
+            return code
+        sys.exit(code)
+
+
+def _print_error(line: str) -> None:
+    with contextlib.suppress(OSError):
+        err_console.print(line, markup=False, highlight=False, soft_wrap=True)
+
+
+def _output_failure(exc: OSError) -> int:
+    """Writing the output failed (stdout closed by the reader, disk full): one line, exit 3."""
+    if exc.errno == errno.EPIPE:
+        # The reader is gone: nothing more goes to stdout (Python's flush at exit would fail again).
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        _print_error("error: output: the reader closed the pipe")
+    else:
+        _print_error(f"error: output: could not write: {exc.strerror or exc}")
+    return EXIT_FAILED
+
+
+app = typer.Typer(
+    cls=OneLineErrors,
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="3D mechanics of scaled skins: exact contact as a QP per load increment.",
+)
 
 
 def _fail(code: int, message: str) -> None:
-    err_console.print(f"error: {message}", markup=False, highlight=False, soft_wrap=True)
+    _print_error(f"error: {_one_line(message)}")
     raise typer.Exit(code)
 
 
-# API parameter -> command-line flag, so the one-line error names what the user typed.
-FLAG_OF = {
-    "slant_deg": "--slant",
-    "slant_dir_deg": "--slant-dir",
-    "gap": "--gap",
-    "thickness": "--thickness",
-    "rings": "--rings",
-    "shape": "--shape",
-    "tiling": "--tiling",
-    "nu": "--nu",
-    "nu_s": "--nu",
-    "coupling": "--coupling-factor",
-    "phi_c_deg": "--phi-c",
-    "solver": "--solver",
-    "formulation": "--formulation",
-}
+def flag_of(parameter: str) -> str:
+    """The command-line flag of an API parameter (an unknown name is shown as it is, no dashes
+    invented: an internal parameter is not a flag)."""
+    return FLAG_OF.get(parameter, parameter)
 
 
 # While a --json command computes, file descriptor 1 points at stderr and the real stdout is kept
@@ -90,7 +203,8 @@ def json_stdout() -> Any:
     try:
         yield
     finally:
-        sys.stdout.flush()
+        with contextlib.suppress(OSError):
+            sys.stdout.flush()
         os.dup2(_json_fd, 1)
         os.close(_json_fd)
         _json_fd = None
@@ -103,24 +217,37 @@ def handles_errors(func: F) -> F:
     @wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
-            if kwargs.get("as_json"):
-                with json_stdout():
-                    return func(*args, **kwargs)
-            return func(*args, **kwargs)
+            with warnings.catch_warnings():
+                # A failed optional output is reported as one error line by finish(), not twice.
+                warnings.simplefilter("ignore", OutputNotWritten)
+                if kwargs.get("as_json"):
+                    with json_stdout():
+                        return func(*args, **kwargs)
+                return func(*args, **kwargs)
+        except Conflict as exc:
+            first, second = (flag_of(p) for p in exc.parameters)
+            _fail(EXIT_INVALID, f"{first} and {second}: cannot be combined: {exc.detail}")
         except InvalidDesign as exc:
-            flag = FLAG_OF.get(exc.parameter, "--" + exc.parameter.replace("_", "-"))
-            _fail(EXIT_INVALID, f"{flag}: {exc}")
+            _fail(EXIT_INVALID, f"{flag_of(exc.parameter)}: {exc}")
         except SolverUnavailable as exc:
-            _fail(EXIT_INVALID, str(exc))
+            _fail(EXIT_INVALID, f"--solver: {exc}")
         except SolverFailure as exc:
-            _fail(EXIT_SOLVER, str(exc))
+            _fail(EXIT_FAILED, str(exc))
         except QpscaleError as exc:
-            _fail(EXIT_SOLVER, str(exc))
+            _fail(EXIT_FAILED, str(exc))
+        except (KeyboardInterrupt, typer.Exit, typer.Abort, SystemExit):
+            raise
+        except OSError as exc:
+            raise typer.Exit(_output_failure(exc)) from None
+        except Exception as exc:  # a bug: one line, not a traceback; QPSCALE_DEBUG=1 shows it
+            if os.environ.get("QPSCALE_DEBUG"):
+                raise
+            _fail(EXIT_INTERNAL, f"internal error ({type(exc).__name__}: {exc}); please report it")
 
     return wrapper  # type: ignore[return-value]
 
 
-def emit(payload: dict[str, Any], as_json: bool, summary: Callable[[dict[str, Any]], None]) -> None:
+def emit(payload: dict[str, Any], as_json: bool, summary: Callable[[dict[str, Any]], None] | None) -> None:
     """Print ``payload`` as one JSON object, or a human summary of it."""
     if as_json:
         text = json.dumps(payload, allow_nan=False) + "\n"
@@ -130,8 +257,25 @@ def emit(payload: dict[str, Any], as_json: bool, summary: Callable[[dict[str, An
                 data = data[os.write(_json_fd, data) :]
         else:
             sys.stdout.write(text)
-    else:
+            sys.stdout.flush()
+    elif summary is not None:
         summary(payload)
+
+
+def _fmt(value: Any, spec: str) -> str:
+    """A number for a summary; a missing one (null in the JSON) reads "n/a", never "nan"."""
+    return "n/a" if value is None else format(value, spec)
+
+
+def finish(report: Any, as_json: bool, summary: Callable[[dict[str, Any]], None]) -> None:
+    """Print a report; then, if an optional output (png, vtk) could not be written, say so on
+    stderr and exit 3: the computed result is printed first, never lost for a file."""
+    emit(report.to_dict(), as_json, summary)
+    errors = getattr(report, "output_errors", ())
+    for message in errors:
+        _print_error(f"error: {flag_of(message.split(':')[0])}: {message}")
+    if errors:
+        raise typer.Exit(EXIT_FAILED)
 
 
 def _version(value: bool) -> None:
@@ -149,29 +293,24 @@ def _root(
     """3D mechanics of scaled skins."""
 
 
-# Options shared by the design-based commands; names follow SPEC.md.
-ShapeOpt = typer.Option("square", "--shape", help="triangle, square, trapezoid, dart or hexagon.")
-TilingOpt = typer.Option(None, "--tiling", help="arrayed or staggered (triangle, square, trapezoid).")
-SlantOpt = typer.Option(0.0, "--slant", help="Slant angle alpha from the vertical, degrees, [0, 90).")
-SlantDirOpt = typer.Option(0.0, "--slant-dir", help="Slant direction, degrees from +x (0, 45 or 90).")
-GapOpt = typer.Option(0.005, "--gap", help="Gap d between neighbouring bases, in L, >= 0.")
-ThicknessOpt = typer.Option(1.0, "--thickness", help="Scale thickness t, in L, > 0.")
-RingsOpt = typer.Option(2, "--rings", help="Rings of neighbours around the punctured scale (2: 5x5).")
-JsonOpt = typer.Option(False, "--json", help="Print one JSON object.")
+def _help(flag: str, text: str) -> str:
+    return f"{text} Allowed: {RANGES[flag]}."
 
 
-def make_design(
-    shape: str, tiling: str | None, slant: float, slant_dir: float, gap: float, thickness: float, rings: int
-) -> Design:
-    return Design(
-        shape=shape,
-        tiling=tiling,
-        slant_deg=slant,
-        slant_dir_deg=slant_dir,
-        gap=gap,
-        thickness=thickness,
-        rings=rings,
-    )
+# Options shared by the design-based commands; names and ranges follow docs/cli.md.
+ShapeOpt = typer.Option("square", "--shape", help=_help("--shape", "Base shape."))
+TilingOpt = typer.Option(None, "--tiling", help=_help("--tiling", "Tiling (default: the shape's first)."))
+SlantOpt = typer.Option(0.0, "--slant", help=_help("--slant", "Slant angle alpha from the vertical."))
+SlantDirOpt = typer.Option(0.0, "--slant-dir", help=_help("--slant-dir", "Slant direction."))
+GapOpt = typer.Option(0.005, "--gap", help=_help("--gap", "Gap d between neighbouring bases."))
+ThicknessOpt = typer.Option(1.0, "--thickness", help=_help("--thickness", "Scale thickness t."))
+JsonOpt = typer.Option(False, "--json", help="Print one JSON object (fields: docs/cli.md).")
+MemoryOpt = typer.Option(
+    None, "--max-memory-gb", help=_help("--max-memory-gb", "Refuse a scene estimated to need more memory.")
+)
+MinutesOpt = typer.Option(
+    None, "--max-minutes", help=_help("--max-minutes", "Refuse a scene estimated to take longer.")
+)
 
 
 @app.command()
@@ -183,41 +322,24 @@ def geometry(
     slant_dir: float = SlantDirOpt,
     gap: float = GapOpt,
     thickness: float = ThicknessOpt,
-    rings: int = RingsOpt,
-    png: Path | None = typer.Option(None, "--png", help="Draw the patch to FILE."),
+    rings: int = typer.Option(2, "--rings", help=_help("--rings", "Rings of neighbours (2: 5x5).")),
+    png: Path | None = typer.Option(None, "--png", help="Draw the patch to FILE (directory created)."),
     as_json: bool = JsonOpt,
 ) -> None:
     """Build a design's patch and check it: areas, gaps, overlaps, top-face offset."""
-    design = make_design(shape, tiling, slant, slant_dir, gap, thickness, rings)
-    patch = design.patch()
-    areas = [p.area for p in patch.polygons()]
-    payload = {
-        "shape": design.shape,
-        "tiling": design.tiling,
-        "base_area": float(areas[0]),
-        "base_area_spread": float(max(areas) - min(areas)),
-        "n_scales": patch.n_scales,
-        "n_neighbour_pairs": int(len(patch.neighbours)),
-        "n_contact_pairs": int(len(patch.contact_pairs)),
-        "min_gap": min_gap(patch) if patch.n_scales > 1 else None,
-        "max_overlap_area": max_overlap_area(patch),
-        "top_offset": [float(v) for v in design.top_offset],
-        "volume": patch.prism(0).volume,
-    }
-    if png is not None:
-        from .plotting import draw_patch
+    from .api import geometry as run
 
-        draw_patch(patch, png)
-        payload["png"] = str(png)
+    report = run(shape, tiling, slant, slant_dir, gap, thickness, rings, png)
 
     def summary(p: dict[str, Any]) -> None:
+        gap_text = "none (one scale)" if p["min_gap"] is None else f"{p['min_gap']:.6g} L"
         console.print(
             f"[bold]{p['shape']} ({p['tiling']})[/]: {p['n_scales']} scales, base area "
-            f"{p['base_area']:.12g} L^2, min gap {p['min_gap']}, max overlap {p['max_overlap_area']:.3g}, "
+            f"{p['base_area']:.12g} L^2, min gap {gap_text}, max overlap {p['max_overlap_area']:.3g} L^2, "
             f"top offset ({p['top_offset'][0]:.4g}, {p['top_offset'][1]:.4g}) L"
         )
 
-    emit(payload, as_json, summary)
+    finish(report, as_json, summary)
 
 
 def _progress(description: str):
@@ -242,178 +364,188 @@ def puncture(
     slant_dir: float = SlantDirOpt,
     gap: float = GapOpt,
     thickness: float = ThicknessOpt,
-    rings: int = RingsOpt,
+    rings: int | None = typer.Option(
+        None,
+        "--rings",
+        help=_help("--rings", "Rings of neighbours around the punctured scale (default 2: 5x5)."),
+    ),
     isolated: bool = typer.Option(False, "--isolated", help="The punctured scale alone (rings = 0)."),
     interaction: str = typer.Option(
-        "full", "--interaction", help="full, substrate (contact off) or contact."
+        "full",
+        "--interaction",
+        help=_help("--interaction", "Substrate coupling and contact; contact off; or f-scaled."),
     ),
     coupling_factor: float | None = typer.Option(
         None,
         "--coupling-factor",
-        help="Substrate coupling f in [0, 1] (default 1; 0.04 for --interaction contact).",
+        help=_help(
+            "--coupling-factor", "Substrate coupling f for substrate/contact (default 1; contact 0.04)."
+        ),
     ),
-    solver: str = typer.Option("clarabel", "--solver", help="clarabel, osqp, cvxpy or qpsolvers:<name>."),
+    solver: str = typer.Option("clarabel", "--solver", help=_help("--solver", "QP backend.")),
     formulation: str = typer.Option(
         "plane",
         "--formulation",
-        help="Scale-scale contact: plane (separating planes, every backend but osqp) or feature.",
+        help=_help("--formulation", "Scale-scale contact: plane (every backend but osqp) or feature."),
     ),
-    accuracy: str = typer.Option("high", "--accuracy", help="QP tolerance: high 1e-9, mid 1e-6, low 1e-3."),
-    phi_c: float = typer.Option(13.0, "--phi-c", help="Critical tilt, degrees, (0, 60]."),
-    nu: float = typer.Option(0.5, "--nu", help="Poisson's ratio of the substrate, [0, 0.5]."),
+    accuracy: str | None = typer.Option(
+        None, "--accuracy", help=_help("--accuracy", "QP tolerance: high 1e-9 (default), mid 1e-6, low 1e-3.")
+    ),
+    phi_c: float = typer.Option(13.0, "--phi-c", help=_help("--phi-c", "Critical tilt.")),
+    nu: float = typer.Option(0.5, "--nu", help=_help("--nu", "Poisson's ratio of the substrate.")),
     load_point: tuple[float, float] | None = typer.Option(
         None,
         "--load-point",
-        help="x y of the load point relative to the scale's reference point, in L "
-        "(default: the worst top-face vertex).",
+        help=_help(
+            "--load-point", "Load point relative to the scale's reference point (default: the worst vertex)."
+        ),
     ),
     probe: bool = typer.Option(
-        True,
-        "--probe/--no-probe",
-        help="Test every state by the second variation and follow branches.",
+        True, "--probe/--no-probe", help="Test every state by the second variation and follow branches."
     ),
     E_s: float | None = typer.Option(
-        None, "--E-s", help="Substrate modulus in Pa, to report F_c in newtons."
+        None, "--E-s", help=_help("--E-s", "Substrate modulus, to report F_c in newtons.")
     ),
-    L_mm: float = typer.Option(2.0, "--L-mm", help="L in millimetres, to report F_c in newtons."),
+    L_mm: float | None = typer.Option(
+        None, "--L-mm", help=_help("--L-mm", "L in millimetres, with --E-s (default 2).")
+    ),
     vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
+    max_memory_gb: float | None = MemoryOpt,
+    max_minutes: float | None = MinutesOpt,
     as_json: bool = JsonOpt,
 ) -> None:
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c."""
-    from .contact import ContactSettings
-    from .experiments.puncture import PunctureSetup, run_puncture
-    from .increment import SQPSettings
-    from .solvers import available_solvers, is_available
+    from .api import puncture as run
 
-    if solver != "penalty" and not is_available(solver):
-        raise InvalidDesign("solver", solver, "{" + ", ".join([*available_solvers(), "penalty"]) + "}")
-    if E_s is not None and not (math.isfinite(E_s) and E_s > 0):
-        raise InvalidDesign("E_s", E_s, "(0, inf) Pa")  # before the run, not after it
-    design = make_design(shape, tiling, slant, slant_dir, gap, thickness, 0 if isolated else rings)
-    setup = PunctureSetup(
-        design=design,
-        interaction=interaction,
-        coupling=coupling_factor,
-        nu=nu,
-        phi_c_deg=phi_c,
-        load_point=load_point,
-        probe=probe,
-        sqp=SQPSettings(solver=solver, accuracy=accuracy),
-        contact=ContactSettings(formulation=formulation),
-    )
     with _progress("puncture") as bar:
         task = bar.add_task("puncture", total=None)
-        result = run_puncture(setup, progress=lambda msg: bar.update(task, description=f"puncture: {msg}"))
-    payload = {
-        "Fc_star": result.Fc_star,
-        "delta_c_star": result.delta_c_star,
-        "load_point": [float(v) for v in result.load_point],
-        "tilt_deg": float(result.tilt_deg[-1]),
-        "max_penetration": result.max_penetration,
-        "increments": len(result.states) - 1,
-        "solver": solver,
-        "formulation": formulation,
-        "wall_s": result.wall_s,
-        "qp_solves": result.qp_solves,
-        "n_scales": design.patch().n_scales,
-        "interaction": interaction,
-        "coupling_factor": setup.coupling_factor,
-        "curve": {
-            "w_star": result.w_star.tolist(),
-            "F_star": result.F_star.tolist(),
-            "tilt_deg": result.tilt_deg.tolist(),
-        },
-        "candidates": result.candidates,
-        "branch": result.branch,
-        "events": [e.to_dict() for e in result.events],
-    }
-    if E_s is not None:
-        from .units import force_from_star
-
-        payload["Fc_N"] = force_from_star(result.Fc_star, E_s, nu, L_mm * 1e-3)
-    if vtk is not None:
-        from .export_vtk import write_puncture_series
-
-        payload["vtk"] = str(write_puncture_series(result, vtk))
-
-    def summary(p: dict[str, Any]) -> None:
-        extra = f" = {p['Fc_N']:.4g} N" if "Fc_N" in p else ""
-        branch = " (branched: followed the asymmetric path)" if p["branch"].get("branched") else ""
-        console.print(
-            f"[bold]{design.shape} ({design.tiling})[/], {p['n_scales']} scales, {interaction}: "
-            f"F_c* = {p['Fc_star']:.6g}{extra} at tilt {p['tilt_deg']:.4g} deg, load point "
-            f"({p['load_point'][0]:.3f}, {p['load_point'][1]:.3f}), delta_c* = {p['delta_c_star']:.4g}"
-            f"{branch}; {p['increments']} increments, {p['qp_solves']} sequential QPs, "
-            f"max penetration {p['max_penetration']:.2g} L, {p['wall_s']:.2f} s"
+        report = run(
+            shape,
+            tiling,
+            slant,
+            slant_dir,
+            gap,
+            thickness,
+            rings=rings,
+            isolated=isolated,
+            interaction=interaction,
+            coupling_factor=coupling_factor,
+            solver=solver,
+            formulation=formulation,
+            accuracy=accuracy,
+            phi_c_deg=phi_c,
+            nu=nu,
+            load_point=load_point,
+            probe=probe,
+            E_s=E_s,
+            L_mm=L_mm,
+            vtk=vtk,
+            max_memory_gb=max_memory_gb,
+            max_minutes=max_minutes,
+            progress=lambda msg: bar.update(task, description=f"puncture: {msg}"),
         )
 
-    emit(payload, as_json, summary)
+    def summary(p: dict[str, Any]) -> None:
+        extra = f" = {_fmt(p.get('Fc_N'), '.4g')} N" if "Fc_N" in p else ""
+        branch = " (branched: followed the asymmetric path)" if (p["branch"] or {}).get("branched") else ""
+        console.print(
+            f"[bold]{p['shape']} ({p['tiling']})[/], {p['n_scales']} scales, {p['interaction']}: "
+            f"F_c* = {_fmt(p['Fc_star'], '.6g')}{extra} at tilt {_fmt(p['tilt_deg'], '.4g')} deg, load point "
+            f"({_fmt(p['load_point'][0], '.3f')}, {_fmt(p['load_point'][1], '.3f')}), "
+            f"delta_c* = {_fmt(p['delta_c_star'], '.4g')}{branch}; {p['increments']} increments, "
+            f"{p['qp_solves']} sequential QPs, max penetration {_fmt(p['max_penetration'], '.2g')} L, "
+            f"{_fmt(p['wall_s'], '.2f')} s"
+        )
+
+    finish(report, as_json, summary)
 
 
 @app.command()
 @handles_errors
 def flexure(
-    shape: str = ShapeOpt,
+    shape: str | None = typer.Option(None, "--shape", help=_help("--shape", "Base shape (default square).")),
     tiling: str | None = TilingOpt,
-    slant: float = SlantOpt,
-    slant_dir: float = SlantDirOpt,
-    gap: float = GapOpt,
-    thickness: float = ThicknessOpt,
-    load_line: str = typer.Option("x", "--load-line", help="Direction of the loading plate: x or y."),
+    slant: float | None = typer.Option(None, "--slant", help=_help("--slant", "Slant angle (default 0).")),
+    slant_dir: float | None = typer.Option(
+        None, "--slant-dir", help=_help("--slant-dir", "Slant direction (default 0).")
+    ),
+    gap: float | None = typer.Option(None, "--gap", help=_help("--gap", "Gap d (default 0.005).")),
+    thickness: float | None = typer.Option(
+        None, "--thickness", help=_help("--thickness", "Scale thickness t (default 1).")
+    ),
+    load_line: str = typer.Option(
+        "x", "--load-line", help=_help("--load-line", "Direction of the loading plate.")
+    ),
     isolated: bool = typer.Option(False, "--isolated", help="One scale at the centre of the membrane."),
-    bare: bool = typer.Option(False, "--bare", help="The membrane alone, no scales."),
-    nu_m: float = typer.Option(0.5, "--nu-m", help="Poisson's ratio of the membrane, [0, 0.5]."),
-    mesh_h: float = typer.Option(0.5, "--mesh-h", help="In-plane element size, in L."),
-    solver: str = typer.Option("clarabel", "--solver", help="clarabel, osqp, cvxpy or qpsolvers:<name>."),
+    bare: bool = typer.Option(False, "--bare", help="The membrane alone, no scales (no design flags)."),
+    nu_m: float = typer.Option(0.5, "--nu-m", help=_help("--nu-m", "Poisson's ratio of the membrane.")),
+    mesh_h: float = typer.Option(
+        0.5, "--mesh-h", help=_help("--mesh-h", "In-plane element size (layers: max(2, 1.5/h)).")
+    ),
+    solver: str = typer.Option("clarabel", "--solver", help=_help("--solver", "QP backend (not penalty).")),
     formulation: str = typer.Option(
-        "plane", "--formulation", help="Scale-scale contact: plane (separating planes) or feature."
+        "plane",
+        "--formulation",
+        help=_help("--formulation", "Scale-scale contact: separating planes or features."),
     ),
     vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
+    max_memory_gb: float | None = MemoryOpt,
+    max_minutes: float | None = MinutesOpt,
     as_json: bool = JsonOpt,
 ) -> None:
     """Flexure: three-point bending of the membrane (bare, one scale, or covered), C_f*."""
-    from .experiments.flexure import FlexureSetup, run_flexure
-    from .membrane import MembraneModel
+    from .api import flexure as run
 
-    if isolated and bare:
-        raise InvalidDesign("--isolated/--bare", "both", "at most one of them")
-    design = make_design(shape, tiling, slant, slant_dir, gap, thickness, 2)
-    nz = max(2, int(round(1.5 / mesh_h)))
-    mode = "bare" if bare else "isolated" if isolated else "scaled"
-    setup = FlexureSetup(
-        design=design,
-        mode=mode,
+    report = run(
+        shape,
+        tiling,
+        slant,
+        slant_dir,
+        gap,
+        thickness,
         load_line=load_line,
-        membrane=MembraneModel(nu=nu_m, h=mesh_h, nz=nz),
+        isolated=isolated,
+        bare=bare,
+        nu_m=nu_m,
+        mesh_h=mesh_h,
         solver=solver,
         formulation=formulation,
+        vtk=vtk,
+        max_memory_gb=max_memory_gb,
+        max_minutes=max_minutes,
     )
-    result = run_flexure(setup)
-    payload = {
-        "Cf_star": result.Cf_star,
-        "curve": {"deflection_star": result.deflection.tolist(), "F_star": result.force.tolist()},
-        "wall_s": result.wall_s,
-        "mode": mode,
-        "load_line": load_line,
-        "n_scales": result.n_scales,
-        "n_retained": result.n_retained,
-        "sqp_iterations": result.sqp_iterations,
-        "max_penetration": result.max_penetration,
-        "released_supports": result.extras["released"],
-        "formulation": setup.formulation,
-    }
-    if vtk is not None:
-        from .export_vtk_flexure import write_flexure_series
-
-        payload["vtk"] = str(write_flexure_series(result, vtk))
 
     def summary(p: dict[str, Any]) -> None:
+        design = "membrane" if p["mode"] == "bare" else f"{p['shape']} ({p['tiling']})"
         console.print(
-            f"[bold]{mode}[/] {design.shape} ({design.tiling}), load line {load_line}: "
-            f"C_f* = {p['Cf_star']:.5g}, {p['n_scales']} scales, {p['wall_s']:.2f} s"
+            f"[bold]{p['mode']}[/] {design}, load line {p['load_line']}: "
+            f"C_f* = {_fmt(p['Cf_star'], '.5g')}, {p['n_scales']} scales, {_fmt(p['wall_s'], '.2f')} s"
         )
 
-    emit(payload, as_json, summary)
+    finish(report, as_json, summary)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that a study cleans up as on Ctrl-C."""
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt() -> Any:
+    """While a study runs, SIGTERM raises :class:`_Terminated` (the pool's workers are then
+    terminated and no partial file is left claiming to be complete)."""
+
+    def handler(signum: int, frame: Any) -> None:
+        raise _Terminated()
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread (a test runner's worker): leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 @app.command()
@@ -421,24 +553,35 @@ def flexure(
 def paper(
     out: Path = typer.Option(Path("paper_out"), "--out", help="Directory for the table and figures."),
     quick: bool = typer.Option(False, "--quick", help="Two designs, coarse settings (a few minutes)."),
-    workers: int = typer.Option(2, "--workers", help="Parallel processes, 1 or 2."),
+    smoke: bool = typer.Option(
+        False, "--smoke", help="With --quick: one scene per study (the plain-install check; under a minute)."
+    ),
+    workers: int = typer.Option(2, "--workers", help=_help("--workers", "Parallel processes.")),
     scene_time_limit: float | None = typer.Option(
         None,
         "--scene-time-limit",
-        help="Seconds per scene before it is recorded as time_limit (default 900, quick 60; 0: none).",
+        help=_help(
+            "--scene-time-limit",
+            "Seconds per scene before it is recorded as time_limit (default 900, quick 60).",
+        ),
     ),
     as_json: bool = JsonOpt,
 ) -> None:
-    """Every study of the paper: results table (CSV, Parquet) and figures (PNG, SVG) in --out."""
-    from .studies.paper import run_paper
-    from .studies.paper_scenes import paper_scenes
+    """Every study of the paper: results table (CSV, Parquet) and figures (PNG, SVG) in --out.
 
-    if workers not in (1, 2):
-        raise InvalidDesign("workers", workers, "{1, 2}")
-    if scene_time_limit is not None and not scene_time_limit >= 0:
-        raise InvalidDesign("scene-time-limit", scene_time_limit, "[0, inf) seconds, 0 for none")
-    scenes = paper_scenes(quick)
-    with _progress("paper") as bar:
+    Each finished scene is saved in --out/scenes at once; a rerun into the same --out resumes.
+    """
+    from . import validation as v
+    from .studies.paper import run_paper
+    from .studies.paper_scenes import paper_scenes, smoke_scenes
+
+    n_workers = v.integer("workers", workers, 1, 2)
+    limit = None if scene_time_limit is None else v.real("scene_time_limit", scene_time_limit, 0.0, None)
+    if smoke and not quick:
+        raise v.conflict("smoke", "quick", "--smoke is a subset of the quick study: give --quick too")
+    out_dir = v.output_dir("out", out)
+    scenes = smoke_scenes() if smoke else paper_scenes(quick)
+    with _progress("paper") as bar, terminate_as_interrupt():
         task = bar.add_task(f"paper: 0/{len(scenes)} scenes", total=len(scenes))
 
         def step(scene: Any, row: dict[str, Any]) -> None:
@@ -448,16 +591,24 @@ def paper(
                 task, description=f"paper: {done}/{len(scenes)} scenes, last {scene.key} {row['status']}"
             )
 
-        result = run_paper(
-            out, quick=quick, workers=workers, progress=step, scenes=scenes, scene_limit_s=scene_time_limit
-        )
+        try:
+            result = run_paper(
+                out_dir, quick=quick, workers=n_workers, progress=step, scenes=scenes, scene_limit_s=limit
+            )
+        except KeyboardInterrupt as exc:
+            what = "terminated" if isinstance(exc, _Terminated) else "interrupted"
+            _print_error(
+                f"error: {what}: finished scenes are saved in {out_dir / 'scenes'}; rerun the same "
+                "command to resume"
+            )
+            raise typer.Exit(143 if isinstance(exc, _Terminated) else EXIT_INTERRUPTED) from None
     failed = result.table[result.table["status"] != "ok"]
     payload = {
-        "out": str(out),
+        "out": str(out_dir),
         "n_scenes": len(result.table),
         "n_failed": len(failed),
         "failed": [{"scene": r["scene"], "status": r["status"]} for _, r in failed.iterrows()],
-        "table": {k: str(v) for k, v in result.files.items()},
+        "table": {k: str(x) for k, x in result.files.items()},
         "figures": [str(p) for p in result.figures],
         "wall_s": result.wall_s,
     }
@@ -473,67 +624,39 @@ def paper(
     emit(payload, as_json, summary)
 
 
-_DOF_KEYS = ("Kx", "Ky", "Kz", "Kphix", "Kphiy")
-
-
 @app.command()
 @handles_errors
 def substrate(
     shape: str = ShapeOpt,
     tiling: str | None = TilingOpt,
-    gap: float = GapOpt,
-    nu: float = typer.Option(0.5, "--nu", help="Poisson's ratio of the substrate, [0, 0.5]."),
+    gap: float | None = typer.Option(
+        None, "--gap", help=_help("--gap", "Gap d (default 0.005; not with --isolated).")
+    ),
+    nu: float = typer.Option(0.5, "--nu", help=_help("--nu", "Poisson's ratio of the substrate.")),
     isolated: bool = typer.Option(False, "--isolated", help="Only the isolated single-punch stiffness."),
-    refinement: int = typer.Option(6, "--refinement", help="Panel strips per fan triangle, [2, 16]."),
+    refinement: int = typer.Option(
+        6, "--refinement", help=_help("--refinement", "Panel strips per fan triangle.")
+    ),
     as_json: bool = JsonOpt,
 ) -> None:
     """Normalised substrate stiffness: isolated punch, self block K0, coupling blocks K1."""
-    from .substrate import SubstrateModel, calibrate, coupling_ratio, isolated_block
+    from .api import substrate as run
 
-    design = Design(shape=shape, tiling=tiling, gap=gap)
-    model = SubstrateModel(nu=nu, refinement=refinement)
-
-    def diag(K: Any) -> dict[str, float]:
-        return {k: float(v) for k, v in zip(_DOF_KEYS, K.diagonal())}
-
-    if isolated:
-        K_iso = isolated_block(design.shape, nu, refinement)
-        payload: dict[str, Any] = {"isolated": diag(K_iso), "isolated_block": K_iso.tolist()}
-    else:
-        cal = calibrate(design, model)
-        near = [c for c in cal.couplings if c.source == 0]
-        payload = {
-            "isolated": diag(cal.K_iso),
-            "K0": diag(cal.K0[0]),
-            "K0_block": cal.K0[0].tolist(),
-            "neighbours": [
-                {
-                    "offset": list(c.offset),
-                    "site": [*c.site, c.receiver],
-                    "K1": diag(c.K1),
-                    "K1_block": c.K1.tolist(),
-                    "ratio": coupling_ratio(c.K1, cal.K0[0]),
-                }
-                for c in near
-            ],
-            "asymmetry": cal.asymmetry,
-            "n_panels": cal.n_panels,
-        }
-    payload.update({"shape": design.shape, "tiling": design.tiling, "gap": gap, "nu": nu})
+    report = run(shape, tiling, gap, nu, isolated, refinement)
 
     def summary(p: dict[str, Any]) -> None:
         console.print(
             f"[bold]{p['shape']} ({p['tiling']})[/], nu = {p['nu']}: isolated "
-            + ", ".join(f"{k} {v:.4g}" for k, v in p["isolated"].items())
+            + ", ".join(f"{k} {x:.4g}" for k, x in p["isolated"].items())
         )
         if "K0" in p:
             console.print(
                 "K0 "
-                + ", ".join(f"{k} {v:.4g}" for k, v in p["K0"].items())
+                + ", ".join(f"{k} {x:.4g}" for k, x in p["K0"].items())
                 + f"; {len(p['neighbours'])} coupling blocks, asymmetry {p['asymmetry']:.2g}"
             )
 
-    emit(payload, as_json, summary)
+    finish(report, as_json, summary)
 
 
 @app.command()
@@ -541,28 +664,35 @@ def substrate(
 def bench(
     out: Path = typer.Option(Path("bench_out"), "--out", help="Directory for the charts (PNG) and CSV."),
     quick: bool = typer.Option(False, "--quick", help="Two scenes, fewer methods, a small stability grid."),
-    time_limit: float = typer.Option(60.0, "--time-limit", help="Seconds per curve counted for a failure."),
-    workers: int = typer.Option(1, "--workers", help="Parallel processes (at most the core count)."),
-    fuzz_n: int = typer.Option(1000, "--fuzz", help="Random designs of the fuzz grid (full bench; 0: none)."),
+    time_limit: float = typer.Option(
+        60.0, "--time-limit", help=_help("--time-limit", "Seconds per curve counted for a failure.")
+    ),
+    workers: int = typer.Option(1, "--workers", help=_help("--workers", "Parallel processes.")),
+    fuzz_n: int = typer.Option(
+        1000, "--fuzz", help=_help("--fuzz", "Random designs of the fuzz grid (full bench; 0: none).")
+    ),
     as_json: bool = JsonOpt,
 ) -> None:
-    """Solver and formulation comparison: speed against accuracy, stability where methods fail."""
+    """Solver and formulation comparison: speed against accuracy, stability where methods fail.
+
+    A backend that is not installed is skipped and listed as skipped.
+    """
+    from . import validation as v
     from .studies.bench_report import run_all
     from .studies.parallel import check_workers
 
-    if not time_limit > 0:
-        raise InvalidDesign("time-limit", time_limit, "(0, inf) seconds")
-    check_workers(workers)
-    if fuzz_n < 0:
-        raise InvalidDesign("fuzz", fuzz_n, "an integer >= 0")
-    with _progress("bench") as bar:
+    limit = v.real("time_limit", time_limit, 0.0, None, lo_open=True, unit="s")
+    check_workers(v.integer("workers", workers, 1, 1024))
+    n_fuzz = v.integer("fuzz", fuzz_n, 0, 100_000)
+    out_dir = v.output_dir("out", out)
+    with _progress("bench") as bar, terminate_as_interrupt():
         task = bar.add_task("bench", total=None)
         payload = run_all(
-            out,
+            out_dir,
             quick,
-            time_limit,
+            limit,
             progress=lambda m: bar.update(task, description=f"bench: {m}"),
-            fuzz_n=fuzz_n,
+            fuzz_n=n_fuzz,
             workers=workers,
         )
 
@@ -574,6 +704,8 @@ def bench(
                 + (f", x{ratio:.2f} of cvxpy" if ratio is not None else "")
                 + (f", F_c error {m['Fc_rel_error']:.1e}" if m["Fc_rel_error"] is not None else "")
             )
+        for sk in p.get("skipped", []):
+            console.print(f"{sk['name']:>22}: skipped, {sk['reason']}", markup=False)
         for name, f in p.get("fuzz", {}).get("methods", {}).items():
             console.print(f"fuzz {name:>17}: {f['success_rate']:.1%} of {f['designs']} designs pass")
         console.print(f"charts and CSV in {p['out']}")

@@ -68,3 +68,8 @@ class SolverFailure(QpscaleError):
 
 class QpscaleWarning(UserWarning):
     """A recoverable event worth knowing about (coupling truncated, dense input converted)."""
+
+
+class OutputNotWritten(QpscaleWarning):
+    """An optional output (a drawing, a ParaView series) could not be written; the result that was
+    computed is returned anyway and lists the failure in ``output_errors``."""

@@ -7,6 +7,7 @@ and contact forces as vertex cells carrying the force vector on the second body 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -78,9 +79,18 @@ def contacts_mesh(cs: ContactSet | None, lam: np.ndarray) -> meshio.Mesh:
 def write_series(
     directory: str | Path, name: str, frames: Sequence[dict[str, meshio.Mesh]], times: Sequence[float]
 ) -> Path:
-    """Write ``frames`` (one dict part-name -> mesh per time) as .vtu files and one .pvd index."""
+    """Write ``frames`` (one dict part-name -> mesh per time) as .vtu files and one .pvd index.
+
+    Frames of an earlier series of the same ``name`` in ``directory`` are removed first (a reused
+    directory must not hold frames the new index does not list), and the index is written last,
+    through a temporary file and a rename: a ``.pvd`` exists only when every frame it lists does.
+    """
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
+    pvd = out / f"{name}.pvd"
+    pvd.unlink(missing_ok=True)
+    for stale in out.glob(f"{name}_*.vtu"):
+        stale.unlink()
     rows = []
     for k, (frame, t) in enumerate(zip(frames, times)):
         for part, (label, mesh) in enumerate(frame.items()):
@@ -89,12 +99,13 @@ def write_series(
             rows.append(
                 f'    <DataSet timestep="{t:.12g}" part="{part}" name={quoteattr(label)} file="{fname}"/>'
             )
-    pvd = out / f"{name}.pvd"
-    pvd.write_text(
+    tmp = pvd.with_name(f".{pvd.name}.{os.getpid()}.tmp")
+    tmp.write_text(
         '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n  <Collection>\n'
         + "\n".join(rows)
         + "\n  </Collection>\n</VTKFile>\n"
     )
+    os.replace(tmp, pvd)
     return pvd
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import matplotlib
@@ -29,6 +30,11 @@ def draw_patch(patch: Patch, path: str | Path, load_point: tuple[float, float] |
     ax.set_ylabel("y / L")
     ax.set_title(f"{patch.design.shape} ({patch.design.tiling}), {patch.n_scales} scales")
     path = Path(path)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:  # a file under its final name is always whole (interrupted or failed writes leave none)
+        fig.savefig(tmp, dpi=120, bbox_inches="tight", format=path.suffix[1:] or "png")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        tmp.unlink(missing_ok=True)
     return path

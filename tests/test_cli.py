@@ -1,4 +1,4 @@
-"""The command line: JSON contract of SPEC.md and exit status 2 on bad input."""
+"""The command line: JSON contract of docs/cli.md and exit status 2 on bad input."""
 
 from __future__ import annotations
 

@@ -48,7 +48,7 @@ class PunctureSetup:
         Shape, tiling, slant, gap, thickness and rings (rings = 0: the isolated scale).
     interaction : str
         ``full`` (substrate coupling and contact), ``substrate`` (contact off) or ``contact``
-        (coupling through the substrate scaled by ``coupling``), SPEC.md.
+        (coupling through the substrate scaled by ``coupling``), docs/cli.md.
     coupling : float or None
         Coupling factor f in [0, 1]; None means 1 for ``full``/``substrate`` and 0.04 for ``contact``.
     nu : float

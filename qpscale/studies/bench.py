@@ -159,7 +159,7 @@ def default_methods(quick: bool = True) -> list[Method]:
     # 33 s and the penalty path 27 s: the quick bench (2-minute budget) keeps the direct Clarabel
     # path, the same solver through qpsolvers and CVXPY (wrapper overhead) and PIQP; the rest is full.
     out = [Method("clarabel", "clarabel"), Method("cvxpy", "cvxpy")]
-    extra = ("piqp", "clarabel") if quick else QP_EXTRA
+    extra = _qpsolvers_wanted(quick)
     out += [Method(f"qpsolvers:{n}", f"qpsolvers:{n}") for n in extra if f"qpsolvers:{n}" in have]
     if not quick:
         out += [Method("osqp-feature-mid", "osqp", "mid", formulation="feature")]
@@ -182,6 +182,20 @@ def default_methods(quick: bool = True) -> list[Method]:
             Method("penalty-k1e+03-n32", "penalty", penalty=PenaltySettings(k_pen=1e3), increments=32),
         ]
     return out
+
+
+def _qpsolvers_wanted(quick: bool) -> tuple[str, ...]:
+    return ("piqp", "clarabel") if quick else QP_EXTRA
+
+
+def skipped_methods(quick: bool, fuzz: bool = False) -> list[str]:
+    """Backends the bench would run that are not installed here: skipped, and listed as such in
+    the bench's output (a plain install has no PIQP, DAQP, ProxQP, quadprog or HiGHS)."""
+    have = set(available_solvers())
+    wanted = [f"qpsolvers:{n}" for n in _qpsolvers_wanted(quick)]
+    if fuzz:
+        wanted.append("qpsolvers:piqp")
+    return list(dict.fromkeys(w for w in wanted if w not in have))
 
 
 @contextlib.contextmanager

@@ -183,12 +183,31 @@ FUZZ_SEED = 1000
 FUZZ_LIMIT_S = 30.0
 # Methods of the full bench's fuzz after the first (Clarabel over every design): each over the
 # first tenth of the designs, its F_c compared with Clarabel's on the same design.
-FUZZ_METHODS = (
-    Method("clarabel", "clarabel"),
-    Method("qpsolvers:piqp", "qpsolvers:piqp"),
-    Method("osqp-feature", "osqp", formulation="feature"),
-    Method("penalty-k1e+03", "penalty", penalty=PenaltySettings(k_pen=1e3)),
+# Built when the fuzz runs, not at import: a Method checks that its backend is installed, and
+# PIQP is optional (a plain install has no PIQP and must still import this module).
+FUZZ_METHOD_ARGS = (
+    ("clarabel", "clarabel"),
+    ("qpsolvers:piqp", "qpsolvers:piqp"),
+    ("osqp-feature", "osqp"),
+    ("penalty-k1e+03", "penalty"),
 )
+
+
+def fuzz_methods() -> tuple[Method, ...]:
+    """The fuzz's methods whose backend is installed here (see :func:`bench.skipped_methods`)."""
+    from ..solvers import available_solvers
+
+    have = {*available_solvers(), "penalty"}
+    return tuple(
+        Method(
+            name,
+            solver,
+            penalty=PenaltySettings(k_pen=1e3) if solver == "penalty" else None,
+            formulation="feature" if solver == "osqp" else "plane",
+        )
+        for name, solver in FUZZ_METHOD_ARGS
+        if solver in have
+    )
 
 
 def fuzz(
@@ -303,9 +322,9 @@ def run_all(
 ) -> dict:
     """The whole bench: scenes x methods, work-precision chart, stability map, fuzz (full only).
 
-    Returns the JSON payload of ``qpscale bench`` (SPEC.md contract plus extras).
+    Returns the JSON payload of ``qpscale bench`` (docs/cli.md contract plus extras).
     """
-    from .bench import default_methods, full_scenes, quick_scenes, run_bench
+    from .bench import default_methods, full_scenes, quick_scenes, run_bench, skipped_methods
 
     out.mkdir(parents=True, exist_ok=True)
     scenes = quick_scenes() if quick else full_scenes()
@@ -318,6 +337,10 @@ def run_all(
         "methods": result.summary,
         "runs": [asdict(r) for r in result.runs],
         "stability": {"points": int(len(stab)), "failures": int((~stab.success).sum())},
+        "skipped": [
+            {"name": name, "reason": "not installed (pip install 'qpscale[solvers]')"}
+            for name in skipped_methods(quick, fuzz=not quick and fuzz_n > 0)
+        ],
         "quick": quick,
         "time_limit_s": time_limit,
         "workers": workers,
@@ -329,7 +352,7 @@ def run_all(
             fuzz_n,
             out,
             FUZZ_SEED,
-            FUZZ_METHODS,
+            fuzz_methods(),
             progress=progress,
             limit_s=FUZZ_LIMIT_S,
             workers=workers,

@@ -9,6 +9,7 @@ compliance C_f* (Fig. 12) and the Ashby chart (Fig. 13).  Every number comes fro
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import matplotlib
@@ -27,7 +28,10 @@ MODES = ("full", "substrate", "contact")
 def _save(fig: plt.Figure, out: Path, name: str) -> list[Path]:
     paths = [out / f"{name}.png", out / f"{name}.svg"]
     for p in paths:
-        fig.savefig(p, dpi=120, bbox_inches="tight")
+        # Drawn to a temporary name, then renamed: an interrupted study leaves no truncated figure.
+        tmp = p.with_name(f".{p.stem}.tmp{p.suffix}")
+        fig.savefig(tmp, dpi=120, bbox_inches="tight", format=p.suffix[1:])
+        os.replace(tmp, p)
     plt.close(fig)
     return paths
 

@@ -9,6 +9,7 @@ scene runs in ``paper_run``; the figures are drawn in ``figures``.
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -20,6 +21,7 @@ import pandas as pd
 
 from .paper_run import run_scene
 from .paper_scenes import Scene, paper_scenes
+from .parallel import terminate_pool, worker_init
 
 MAX_WORKERS = 2
 # Wall-time limit of one scene in seconds (full run, quick run): a scene over it is recorded with
@@ -59,27 +61,38 @@ def run_scenes(
     workers: int = MAX_WORKERS,
     progress: Callable[[Scene, dict], None] | None = None,
     limit_s: float | None = None,
+    on_done: Callable[[Scene, dict, dict], None] | None = None,
 ) -> tuple[list[dict], dict]:
     """Run ``scenes`` on ``workers`` processes (1: in this process), rows in the order given.
 
-    ``limit_s`` is each scene's wall-time limit (None: none).
+    ``limit_s`` is each scene's wall-time limit (None: none).  ``on_done(scene, row, data)`` is
+    called as each scene finishes (:func:`run_paper` saves it there).  An exception here (Ctrl-C,
+    SIGTERM turned into one by the command line) terminates the worker processes before it
+    propagates: no worker keeps computing a scene nobody will read.
     """
     rows: dict[str, dict] = {}
     data: dict[str, dict] = {}
 
     def done(scene: Scene, row: dict, d: dict) -> None:
         rows[scene.key], data[scene.key] = row, d
+        if on_done:
+            on_done(scene, row, d)
         if progress:
             progress(scene, row)
 
-    if workers <= 1:
+    if workers <= 1 or len(scenes) <= 1:
         for s in scenes:
             done(s, *run_scene(s, limit_s))
     else:
-        with ProcessPoolExecutor(max_workers=min(workers, MAX_WORKERS)) as pool:
+        pool = ProcessPoolExecutor(max_workers=min(workers, MAX_WORKERS), initializer=worker_init)
+        try:
             futures = {pool.submit(run_scene, s, limit_s): s for s in scenes}
             for fut in as_completed(futures):
                 done(futures[fut], *fut.result())
+        except BaseException:
+            terminate_pool(pool)
+            raise
+        pool.shutdown(wait=True)
     return [rows[s.key] for s in scenes], data
 
 
@@ -113,14 +126,68 @@ def add_ratios(table: pd.DataFrame) -> pd.DataFrame:
     return t
 
 
+def _atomic(path: Path, write: Callable[[Path], object]) -> None:
+    """``write(tmp)`` then rename to ``path``: a file under its final name is always whole."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_table(table: pd.DataFrame, data: dict, out: Path) -> dict:
-    """Write ``results.csv``, ``results.parquet`` and ``curves.json`` into ``out``."""
+    """Write ``results.csv``, ``results.parquet`` and ``curves.json`` into ``out`` (each atomically)."""
     out.mkdir(parents=True, exist_ok=True)
     files = {"csv": out / "results.csv", "parquet": out / "results.parquet", "curves": out / "curves.json"}
-    table.to_csv(files["csv"], index=False)
-    table.to_parquet(files["parquet"], index=False)
-    files["curves"].write_text(json.dumps(data, allow_nan=False))
+    _atomic(files["csv"], lambda p: table.to_csv(p, index=False))
+    _atomic(files["parquet"], lambda p: table.to_parquet(p, index=False))
+    _atomic(files["curves"], lambda p: p.write_text(json.dumps(data, allow_nan=False)))
     return files
+
+
+# Per-scene results of a run in progress: one JSON file per finished scene, so that an interrupted
+# study resumes where it stopped.  A file is reused only if it was written for the same scene, time
+# limit and package version (the fingerprint).
+SCENES_DIR = "scenes"
+PROGRESS_FILE = "progress.json"
+FINAL_FILES = ("results.csv", "results.parquet", "curves.json", "findings.md")
+
+
+def _fingerprint(scene: Scene, limit_s: float | None) -> str:
+    from .. import __version__
+
+    return json.dumps({"scene": repr(scene), "limit_s": limit_s, "version": __version__}, sort_keys=True)
+
+
+def _scene_file(out: Path, scene: Scene) -> Path:
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in scene.key)
+    return out / SCENES_DIR / f"{safe}.json"
+
+
+def saved_scene(out: Path, scene: Scene, limit_s: float | None) -> tuple[dict, dict] | None:
+    """The row and data a previous run saved for ``scene``, or None (absent, stale or unreadable)."""
+    path = _scene_file(out, scene)
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(saved, dict) or saved.get("fingerprint") != _fingerprint(scene, limit_s):
+        return None
+    return saved["row"], saved["data"]
+
+
+def save_scene(out: Path, scene: Scene, limit_s: float | None, row: dict, data: dict) -> None:
+    path = _scene_file(out, scene)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps({"fingerprint": _fingerprint(scene, limit_s), "row": row, "data": data})
+    _atomic(path, lambda p: p.write_text(text))
+
+
+def write_progress(out: Path, done: int, total: int, complete: bool) -> None:
+    """``progress.json``: scenes done of total, and whether the table and figures are complete."""
+    text = json.dumps({"complete": complete, "scenes_done": done, "scenes_total": total})
+    _atomic(out / PROGRESS_FILE, lambda p: p.write_text(text))
 
 
 def run_paper(
@@ -148,19 +215,54 @@ def run_paper(
     scene_limit_s : float or None
         Wall-time limit of each scene in seconds (default ``SCENE_LIMIT_S[quick]``; 0: none). A
         scene over it gets the status ``time_limit`` and empty results; the study goes on.
+
+    Notes
+    -----
+    Each finished scene is saved at once under ``out/scenes/`` and ``out/progress.json`` counts
+    them with ``"complete": false``; a rerun into the same ``out`` skips the scenes already saved
+    (same scene, time limit and version).  The table, curves and findings are written last, each
+    through a temporary file and a rename, and ``progress.json`` says ``"complete": true`` only
+    after them: an interrupted run leaves no file claiming to be the study's result.
     """
     from .figures import all_figures
     from .paper_findings import write_findings
 
     t0 = time.perf_counter()
     out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     limit = SCENE_LIMIT_S[quick] if scene_limit_s is None else scene_limit_s
-    rows, data = run_scenes(scenes if scenes is not None else paper_scenes(quick), workers, progress, limit)
-    table = add_ratios(pd.DataFrame(rows))
-    files = write_table(table, data, out)
-    figures = all_figures(table, data, out)
-    files["findings"] = write_findings(table, out)
-    return PaperResult(table, data, figures, time.perf_counter() - t0, files)
+    todo_all = scenes if scenes is not None else paper_scenes(quick)
+    # A previous run's table would claim to describe this one while it runs: remove it (the scenes
+    # it was built from are kept under scenes/ and reused below).
+    for name in FINAL_FILES:
+        (out / name).unlink(missing_ok=True)
+    rows: dict[str, dict] = {}
+    data: dict[str, dict] = {}
+    todo = []
+    for s in todo_all:
+        saved = saved_scene(out, s, limit)
+        if saved is None:
+            todo.append(s)
+        else:
+            rows[s.key], data[s.key] = saved
+            if progress:
+                progress(s, saved[0])
+    write_progress(out, len(rows), len(todo_all), complete=False)
+
+    def on_done(scene: Scene, row: dict, d: dict) -> None:
+        save_scene(out, scene, limit, row, d)
+        rows[scene.key], data[scene.key] = row, d
+        write_progress(out, len(rows), len(todo_all), complete=False)
+
+    run_scenes(todo, workers, progress, limit, on_done)
+    table = add_ratios(pd.DataFrame([rows[s.key] for s in todo_all]))
+    curves = {s.key: data[s.key] for s in todo_all}
+    figures = all_figures(table, curves, out)
+    findings = write_findings(table, out)
+    files = write_table(table, curves, out)
+    files["findings"] = findings
+    write_progress(out, len(rows), len(todo_all), complete=True)
+    return PaperResult(table, curves, figures, time.perf_counter() - t0, files)
 
 
 def load_results(out: str | Path) -> tuple[pd.DataFrame, dict]:

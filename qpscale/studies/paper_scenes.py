@@ -165,3 +165,22 @@ def paper_scenes(quick: bool = False) -> list[Scene]:
     True
     """
     return puncture_scenes(quick) + flexure_scenes(quick)
+
+
+def smoke_scenes() -> list[Scene]:
+    """Five quick scenes through the whole chain (both kinds, the table, every figure's code path):
+    the isolated square (validation and isolated studies), the 5x5 square array, the bare membrane
+    and the covered one at the quick mesh.  ``qpscale paper --quick --smoke`` runs them: the
+    plain-install check of .ci/run (under a minute on one core).
+
+    >>> [s.kind for s in smoke_scenes()].count("flexure")
+    2
+    """
+    inc, h = 6, 1.0
+    return [
+        Scene("validation", "puncture", "square", "arrayed", rings=0, increments=inc),
+        Scene("isolated", "puncture", "square", rings=0, increments=inc),
+        Scene("interaction", "puncture", "square", "arrayed", interaction="full", increments=inc),
+        Scene("flexure", "flexure", flex_mode="bare", load_line="x", increments=2, mesh_h=h),
+        Scene("flexure", "flexure", "square", "arrayed", load_line="x", increments=2, mesh_h=h),
+    ]

@@ -9,8 +9,11 @@ mean what they mean in a serial run as long as ``workers`` does not exceed the m
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
+import signal
+import sys
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, TypeVar
@@ -51,11 +54,53 @@ def pmap(
         return out
     results: list[Any] = [None] * len(tasks)
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=worker_init)
+    try:
         futures = {pool.submit(fn, *task): i for i, task in enumerate(tasks)}
         for done, fut in enumerate(as_completed(futures), start=1):
             i = futures[fut]
             results[i] = fut.result()
             if progress:
                 progress(f"{done}/{len(tasks)} " + (label(tasks[i]) if label else ""))
+    except BaseException:
+        # Ctrl-C, SIGTERM (the CLI raises it as an interrupt) or a task's error: no worker may
+        # keep computing a task whose result nobody will read.
+        terminate_pool(pool)
+        raise
+    pool.shutdown(wait=True)
     return results
+
+
+def terminate_pool(pool: ProcessPoolExecutor, timeout_s: float = 5.0) -> None:
+    """Stop a process pool now: pending tasks cancelled, running workers terminated and reaped."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for proc in processes:
+        with contextlib.suppress(Exception):
+            proc.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        with contextlib.suppress(Exception):
+            proc.join(timeout_s)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(timeout_s)
+
+
+def worker_init() -> None:
+    """Initializer of every worker process of the studies.
+
+    Ctrl-C in a terminal reaches the whole process group: the workers ignore SIGINT and leave it to
+    the parent, which terminates them (:func:`terminate_pool`) instead of each printing a
+    traceback.  On Linux the kernel also sends a worker SIGTERM when its parent dies, so a parent
+    killed without a chance to clean up (SIGKILL) leaves no orphan computing for minutes.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # A forked worker inherits the parent's handlers; the command line's SIGTERM handler turns the
+    # signal into an exception, but a worker must simply end when the parent terminates it.
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            import ctypes
+
+            PR_SET_PDEATHSIG = 1
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)

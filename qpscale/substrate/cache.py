@@ -12,6 +12,7 @@ import hashlib
 import json
 import logging
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -52,9 +53,14 @@ def _save(path: Path, cal: Calibration) -> None:
         "K1": np.array([c.K1 for c in cp]).reshape(-1, 5, 5),
     }
     path.parent.mkdir(parents=True, exist_ok=True)
+    # Written whole to a temporary file, then renamed: a reader never sees a truncated file under
+    # the final name, and an interrupted or failed write (disk full) leaves no file behind.
     tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    try:
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _load(path: Path) -> Calibration:
@@ -77,7 +83,9 @@ def cached(key: str, compute) -> Calibration:
     if path is not None and path.exists():
         try:
             cal = _load(path)
-        except (OSError, KeyError, ValueError) as exc:  # a corrupt file is recomputed
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            # A truncated or corrupt file (an older version's interrupted write) is recomputed and
+            # replaced below, never fatal.
             log.warning("ignoring unreadable substrate cache %s: %s", path, exc)
     if cal is None:
         cal = compute()
