@@ -18,7 +18,7 @@ import scipy.sparse.linalg as spla
 
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from .errors import InvalidDesign, SolverFailure
-from .increment import Anderson, Equilibrium, LoadPoint
+from .increment import Anderson, Equilibrium, LevelOutcome, LevelStatus, LoadPoint
 from .tiling import Patch
 
 SOLVER = "penalty"
@@ -171,7 +171,7 @@ def solve_linearised(
     )
 
 
-def solve_equilibrium_penalty(
+def penalty_level(
     patch: Patch,
     K: sp.spmatrix,
     q0: np.ndarray,
@@ -181,19 +181,17 @@ def solve_equilibrium_penalty(
     settings: PenaltySettings,
     increment: int | None = None,
     previous: ContactSet | None = None,
-) -> Equilibrium:
+) -> LevelOutcome:
     """Penalty contact and Newton iterations at a fixed load level, formulations/penalty.md.
 
-    Same meaning as :func:`qpscale.increment.solve_equilibrium`: linearise the contact rows at
-    the exact configuration, solve the penalised problem (3) by Newton, update exactly, repeat
+    Same meaning and outcome as :func:`qpscale.increment.solve_level`: linearise the contact rows
+    at the exact configuration, solve the penalised problem (3) by Newton, update exactly, repeat
     until the update is below ``settings.tol`` (Anderson-accelerated while the rows stay the
     same).  The rows' forces are ``lam = k (-g)_+`` with ``k = settings.k_pen * substrate_scale(K)``.
-    The exact penetration is reported, not checked: it is O(F / k) by design (eq. (7)).
-
-    Raises
-    ------
-    SolverFailure
-        Status ``"newton did not converge"`` or ``"singular Newton system"``.
+    The exact penetration is reported, not checked: it is O(F / k) by design (eq. (7)).  A failed
+    level has status ``qp failed`` (``"singular Newton system"``, a Newton solve that did not
+    converge) or ``not converged`` (the linearisations did not settle); the penalty baseline has
+    no rescues.
     """
     k = settings.k_pen * substrate_scale(K)
     q = np.array(q0, dtype=float, copy=True)
@@ -206,22 +204,46 @@ def solve_equilibrium_penalty(
         t1 = time.perf_counter()
         try:
             dq, F, n = solve_linearised(K, k, q, lin, load, delta, settings)
-        except SolverFailure as exc:
-            raise SolverFailure(SOLVER, exc.status, increment, exc.detail) from exc
+        except SolverFailure as exc:  # the Newton solve of one linearisation reports by raising
+            failure = SolverFailure(SOLVER, exc.status, increment, exc.detail)
+            return LevelOutcome(LevelStatus.QP_FAILED, None, failure)
         steps += n
         build_s, solve_s = build_s + t1 - t0, solve_s + time.perf_counter() - t1
         if np.max(np.abs(dq)) <= settings.tol:
-            return _converged(patch, k, q + dq, F, lin, delta, contact, steps, build_s, solve_s)
+            state = _converged(patch, k, q + dq, F, lin, delta, contact, steps, build_s, solve_s)
+            return LevelOutcome(LevelStatus.CONVERGED, state)
         if lin.key != key:
             accel.reset()
             key = lin.key
         q = accel.step(q.reshape(-1), dq.reshape(-1)).reshape(q.shape)
-    raise SolverFailure(
+    failure = SolverFailure(
         SOLVER,
         "newton did not converge",
         increment,
         f"last |dq| = {np.max(np.abs(dq)):.3g} after {settings.max_iter} linearisations, k = {k:.3g}",
     )
+    return LevelOutcome(LevelStatus.NOT_CONVERGED, None, failure)
+
+
+def solve_equilibrium_penalty(
+    patch: Patch,
+    K: sp.spmatrix,
+    q0: np.ndarray,
+    load: LoadPoint,
+    delta: float,
+    contact: ContactSettings | None,
+    settings: PenaltySettings,
+    increment: int | None = None,
+    previous: ContactSet | None = None,
+) -> Equilibrium:
+    """:func:`penalty_level`'s state, or its failure raised.
+
+    Raises
+    ------
+    SolverFailure
+        Status ``"newton did not converge"`` or ``"singular Newton system"``.
+    """
+    return penalty_level(patch, K, q0, load, delta, contact, settings, increment, previous).unwrap()
 
 
 def _converged(patch, k, q, F, lin, delta, contact, steps, build_s, solve_s) -> Equilibrium:

@@ -21,7 +21,7 @@ from ..contact import ContactSettings
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Branch, ContactChange, Event, Failure, Rescue, Snap
 from ..geometry import tilt
-from ..increment import Equilibrium, LevelOutcome, LevelStatus, LoadPoint, SQPSettings, solve_level
+from ..increment import Equilibrium, LevelOutcome, LoadPoint, SQPSettings, solve_level
 from ..mirror import Mirror, map_dofs
 from ..stability import Stability, second_variation
 from ..substrate import SubstrateModel, stiffness_matrix
@@ -262,26 +262,22 @@ class _Path:
         return outcome
 
     def _penalty_solve(self, start: Equilibrium, delta: float, index: int) -> LevelOutcome:
-        from ..penalty import PenaltySettings, solve_equilibrium_penalty
+        from ..penalty import PenaltySettings, penalty_level
 
         settings = self.setup.penalty if self.setup.penalty is not None else PenaltySettings()
         if not isinstance(settings, PenaltySettings):
             raise InvalidDesign("penalty", type(settings).__name__, "PenaltySettings or None")
-        try:
-            state = solve_equilibrium_penalty(
-                self.patch,
-                self.K,
-                start.q,
-                self.load,
-                delta,
-                self.contact,
-                settings,
-                increment=index,
-                previous=start.contacts,
-            )
-        except SolverFailure as failure:  # the penalty baseline reports by raising
-            return LevelOutcome(LevelStatus.NOT_CONVERGED, None, failure)
-        return LevelOutcome(LevelStatus.CONVERGED, state)
+        return penalty_level(
+            self.patch,
+            self.K,  # type: ignore[arg-type]
+            start.q,
+            self.load,
+            delta,
+            self.contact,
+            settings,
+            increment=index,
+            previous=start.contacts,
+        )
 
     def sqp(self, descent: bool = False) -> SQPSettings:
         """The SQP settings of this path: the plain iteration for a landing (``descent``), and no
