@@ -107,14 +107,20 @@ def graded_axis(
     fine: tuple[float, ...] = (),
     h_min: float = 0.005,
     growth: float = 1.5,
+    fine_h: tuple[float, ...] | None = None,
 ) -> Array:
     """Grid coordinates on [lo, hi]: a line at each break and each fine line, spacing <= h.
 
     Away from ``fine`` the spacing is uniform per interval; towards a fine line the target size
     is ``s(x) = min(h, h_min + (growth - 1) dist(x, fine))``, a geometric grading (eq. (1)):
-    the nodes of each interval between lines sit at equal steps of ``int dx / s``.
+    the nodes of each interval between lines sit at equal steps of ``int dx / s``.  ``fine_h``
+    gives each fine line its own smallest size instead of ``h_min`` (membrane.md sec. 2).
     """
-    fine_in = np.array([f for f in fine if lo < f < hi], dtype=float)
+    sizes = np.full(len(fine), h_min) if fine_h is None else np.asarray(fine_h, dtype=float)
+    if len(sizes) != len(fine):
+        raise InvalidDesign("fine_h", len(sizes), f"one size per fine line ({len(fine)})")
+    keep = np.array([lo < f < hi for f in fine], dtype=bool)
+    fine_in, sizes = np.asarray(fine, dtype=float)[keep], sizes[keep]
     pts = np.unique(np.round(np.r_[lo, hi, [b for b in breaks if lo < b < hi], fine_in], 12))
     out = [pts[:1]]
     for a, b in zip(pts[:-1], pts[1:]):
@@ -123,8 +129,8 @@ def graded_axis(
             out.append(np.linspace(a, b, n + 1)[1:])
             continue
         x = np.linspace(a, b, 4001)
-        dist = np.min(np.abs(x[:, None] - fine_in[None, :]), axis=1)
-        dens = 1.0 / np.minimum(h, h_min + (growth - 1.0) * dist)
+        size = np.min(sizes[None, :] + (growth - 1.0) * np.abs(x[:, None] - fine_in[None, :]), axis=1)
+        dens = 1.0 / np.minimum(h, size)
         cum = np.r_[0.0, np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(x))]
         n = max(1, int(np.ceil(cum[-1] - 1e-9)))
         out.append(np.interp(np.linspace(0.0, cum[-1], n + 1)[1:], cum, x))
@@ -137,11 +143,14 @@ def build_mesh(
     ybreaks: tuple[float, ...] = (),
     xfine: tuple[float, ...] = (),
     yfine: tuple[float, ...] = (),
+    xfine_h: tuple[float, ...] | None = None,
+    yfine_h: tuple[float, ...] | None = None,
 ) -> MeshHex:
-    """The tensor hexahedral mesh of the block; breaks become grid lines, graded towards ``*fine``."""
+    """The tensor hexahedral mesh of the block; breaks become grid lines, graded towards ``*fine``
+    (to ``model.h_min``, or to the per-line sizes ``*fine_h``)."""
     g = {"h_min": model.h_min, "growth": model.growth}
-    x = graded_axis(-model.length / 2, model.length / 2, model.h, (0.0, *xbreaks), xfine, **g)
-    y = graded_axis(-model.width / 2, model.width / 2, model.h, (0.0, *ybreaks), yfine, **g)
+    x = graded_axis(-model.length / 2, model.length / 2, model.h, (0.0, *xbreaks), xfine, fine_h=xfine_h, **g)
+    y = graded_axis(-model.width / 2, model.width / 2, model.h, (0.0, *ybreaks), yfine, fine_h=yfine_h, **g)
     z = np.linspace(0.0, model.height, model.nz + 1)
     return MeshHex.init_tensor(x, y, z)
 
