@@ -6,14 +6,7 @@ import shutil
 
 import pytest
 
-from qpscale.studies.calculix_check import CheckProblem, ccx_deflection, qpscale_extrapolated, richardson
-
-
-def test_richardson_recovers_a_known_limit():
-    # v(h) = 3 + 2 h^1.5 at h = 1, 1/2, 1/4: the limit 3 and the order 1.5 to round-off.
-    limit, p, err = richardson([3 + 2 * h**1.5 for h in (1.0, 0.5, 0.25)])
-    assert limit == pytest.approx(3.0, abs=1e-12) and p == pytest.approx(1.5, abs=1e-12)
-    assert err == pytest.approx(2 * 0.25**1.5, rel=1e-9)
+from qpscale.studies.calculix_check import CheckProblem, ccx_deflection, qpscale_extrapolated
 
 
 @pytest.mark.slow

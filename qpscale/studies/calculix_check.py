@@ -30,6 +30,7 @@ import scipy.sparse.linalg as spla
 from ..errors import InvalidDesign, SolverFailure, SolverUnavailable
 from ..geometry import Array
 from ..membrane import MembraneModel, assemble_stiffness, graded_axis
+from .flexure_bench import richardson
 
 #: C3D20 nodes as corner-sign triples on the doubled grid (ccx/Abaqus order: 8 corners, 12 mid-edges).
 _C3D20 = [
@@ -264,18 +265,6 @@ def _read_dat(text: str) -> dict[int, float]:
         if len(parts) == 4 and re.fullmatch(r"\d+", parts[0]):
             out[int(parts[0])] = float(parts[3])
     return out
-
-
-def richardson(values: list[float], ratio: float = 2.0) -> tuple[float, float, float]:
-    """Limit, observed order and error estimate of the finest value from three refinements by ``ratio``.
-
-    ``values`` go from coarse to fine. Order ``p = log(|v1 - v0| / |v2 - v1|) / log(ratio)``; limit
-    ``v2 + (v2 - v1) / (ratio^p - 1)``; the error estimate is ``|limit - v2|``.
-    """
-    v0, v1, v2 = values[-3:]
-    p = float(np.log(abs(v1 - v0) / abs(v2 - v1)) / np.log(ratio))
-    limit = v2 + (v2 - v1) / (ratio**p - 1.0)
-    return float(limit), p, float(abs(limit - v2))
 
 
 def qpscale_extrapolated(nu: float, h: float = 0.5, nz: int = 4) -> tuple[float, float, dict]:
