@@ -361,6 +361,11 @@ def flexure(
         "plane", "--formulation", help="Scale-scale contact: plane (separating planes) or feature."
     ),
     vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
+    # issue 21: roller supports and top-layer grading (formulations/membrane.md secs. 1, 9c)
+    roller_radius: float = typer.Option(0.5, "--roller-radius", help="Radius of the support rollers, in L."),
+    top_h: float | None = typer.Option(
+        None, "--top-h", help="Grade the membrane's layers from this thickness at the top face, in L."
+    ),
     as_json: bool = JsonOpt,
 ) -> None:
     """Flexure: three-point bending of the membrane (bare, one scale, or covered), C_f*."""
@@ -376,9 +381,10 @@ def flexure(
         design=design,
         mode=mode,
         load_line=load_line,
-        membrane=MembraneModel(nu=nu_m, h=mesh_h, nz=nz),
+        membrane=MembraneModel(nu=nu_m, h=mesh_h, nz=nz, top_h=top_h),
         solver=solver,
         formulation=formulation,
+        roller_radius=roller_radius,
     )
     result = run_flexure(setup)
     payload = {
@@ -393,6 +399,7 @@ def flexure(
         "max_penetration": result.max_penetration,
         "released_supports": result.extras["released"],
         "formulation": setup.formulation,
+        "roller_radius": setup.roller_radius,
     }
     if vtk is not None:
         from .export_vtk_flexure import write_flexure_series
