@@ -294,3 +294,16 @@ def test_every_design_converges_and_is_stiffer_than_the_isolated_scale(shape, ti
     assert r.max_penetration <= 1e-9
     assert np.all(np.diff(r.force) > 0)
     assert r.Cf_star < iso.Cf_star
+
+
+def test_roller_zone_grows_until_no_node_without_a_row_penetrates():
+    # Bare membrane, default mesh: with a zone of 0.001 L only the roller lines and no neighbour carry rows,
+    # the nodes 0.05 L off the line (gap 0.0025 L) come into contact, so the zone is doubled to 0.004 L.
+    # The curve then equals the one with the default zone 0.04 L (1e-7: SQP step tolerance 1e-9 L on
+    # deflections of 0.2 L), with half the rows.
+    wide = run_flexure(FlexureSetup(mode="bare", increments=2))
+    narrow = run_flexure(FlexureSetup(mode="bare", increments=2, roller_zone=0.001))
+    assert narrow.extras["model"].setup.roller_zone == pytest.approx(0.004)
+    assert narrow.max_penetration <= 1e-9
+    assert len(narrow.extras["model"].support_idx) < len(wide.extras["model"].support_idx)
+    assert narrow.Cf_star == pytest.approx(wide.Cf_star, rel=1e-7)
