@@ -564,6 +564,8 @@ def flexure(
     mesh_h: float = 0.5,
     solver: str = "clarabel",
     formulation: str = "plane",
+    roller_radius: float = 0.5,
+    top_h: float | None = None,
     vtk: str | Path | None = None,
     max_memory_gb: float | None = None,
     max_minutes: float | None = None,
@@ -587,6 +589,12 @@ def flexure(
         An installed QP backend (``qpscale.solvers.available_solvers()``).
     formulation : {"plane", "feature"}
         Scale-scale contact by separating planes or by clipped features.
+    roller_radius : float
+        Radius of the rigid support rollers under the membrane, in L, (0, 3.75) (their axes lie at
+        +-4 L: the span of 8 L, formulations/membrane.md sec. 1).
+    top_h : float or None
+        Thickness of the top layer when the layers are graded towards the top face, in L,
+        (0, 1.5 / layers]; None: uniform layers.
     vtk : path or None
         Directory for a ParaView series; created before the run.
     max_memory_gb : float or None
@@ -614,8 +622,10 @@ def flexure(
     h = v.real("mesh_h", mesh_h, v.MESH_H_RANGE[0], v.MESH_H_RANGE[1], unit="L")
     backend = v.qp_solver(solver)
     form = v.choice("formulation", formulation, ("plane", "feature"))
+    radius = v.real("roller_radius", roller_radius, 0.0, 3.75, lo_open=True, hi_open=True, unit="L")
     vtk_dir = v.output_dir("vtk", vtk) if vtk is not None else None
     nz = max(2, int(round(1.5 / h)))
+    top = None if top_h is None else v.real("top_h", top_h, 0.0, 1.5 / nz, lo_open=True, unit="L")
     v.memory(v.flexure_memory_gb(h, nz), v.max_memory_gb(max_memory_gb), "mesh_h", h, "the membrane mesh")
     v.duration(v.flexure_time_s(h, nz), v.max_minutes(max_minutes), "mesh_h", h, "the membrane mesh")
     design = _design(values, DEFAULT_RINGS)
@@ -628,9 +638,10 @@ def flexure(
         design=design,
         mode=mode,
         load_line=line,
-        membrane=MembraneModel(nu=nu, h=h, nz=nz),
+        membrane=MembraneModel(nu=nu, h=h, nz=nz, top_h=top),
         solver=backend,
         formulation=form,
+        roller_radius=radius,
     )
     result = run_flexure(setup)
     payload: dict[str, Any] = {
@@ -647,6 +658,8 @@ def flexure(
         "max_penetration": result.max_penetration,
         "released_supports": result.extras.get("released"),
         "formulation": setup.formulation,
+        "roller_radius": setup.roller_radius,
+        "top_h": top,
         "mesh_h": h,
         "nz": nz,
     }

@@ -69,6 +69,8 @@ RANGES: dict[str, str] = {
     "--load-line": "{x, y}",
     "--mesh-h": "[0.05, 2] L, within the memory and time limits",
     "--formulation": "{plane, feature}",
+    "--roller-radius": "(0, 3.75) L (half the span less the plate's width)",
+    "--top-h": "(0, 1.5 / layers] L (default: uniform layers)",
     "--refinement": "integers in [2, 16]",
     "--workers": "integers from 1 to the number of cores (paper: 1 or 2)",
     "--scene-time-limit": "[0, inf) s, 0 for none",
@@ -489,6 +491,12 @@ def flexure(
         help=_help("--formulation", "Scale-scale contact: separating planes or features."),
     ),
     vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
+    roller_radius: float = typer.Option(
+        0.5, "--roller-radius", help=_help("--roller-radius", "Radius of the support rollers.")
+    ),
+    top_h: float | None = typer.Option(
+        None, "--top-h", help=_help("--top-h", "Grade the layers from this thickness at the top face.")
+    ),
     max_memory_gb: float | None = MemoryOpt,
     max_minutes: float | None = MinutesOpt,
     as_json: bool = JsonOpt,
@@ -510,6 +518,8 @@ def flexure(
         mesh_h=mesh_h,
         solver=solver,
         formulation=formulation,
+        roller_radius=roller_radius,
+        top_h=top_h,
         vtk=vtk,
         max_memory_gb=max_memory_gb,
         max_minutes=max_minutes,

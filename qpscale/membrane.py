@@ -49,6 +49,10 @@ class MembraneModel:
         Element size at a graded line (a scale edge next to a gap), in L.
     growth : float
         Growth ratio of the element size away from graded lines, in (1, 4].
+    top_h : float or None
+        Layer thickness at the top face, in L: the layers are graded from it (growth ``growth``) up
+        to ``height / nz``, resolving the membrane under the gaps between bonded scales (membrane.md
+        sec. 9); None: ``nz`` uniform layers.
     integration : {"sri", "full"}
         Selective reduced integration (default), or full 2x2x2 integration of both parts (the
         locking element, kept to show what the default avoids).
@@ -63,6 +67,7 @@ class MembraneModel:
     nz: int = 3
     h_min: float = 0.005
     growth: float = 1.5
+    top_h: float | None = None
     integration: str = "sri"
 
     def __post_init__(self) -> None:
@@ -83,6 +88,8 @@ class MembraneModel:
             raise InvalidDesign("nz", self.nz, "integers in [1, 64]")
         if not (1.0 < self.growth <= 4.0):
             raise InvalidDesign("growth", self.growth, "(1, 4]")
+        if self.top_h is not None and not (0 < self.top_h <= self.height / self.nz):
+            raise InvalidDesign("top_h", self.top_h, f"(0, height / nz = {self.height / self.nz}]")
         if self.h_min > self.h:
             raise InvalidDesign("h_min", self.h_min, f"(0, h = {self.h}]")
         if self.h > min(self.length, self.width):
@@ -107,14 +114,20 @@ def graded_axis(
     fine: tuple[float, ...] = (),
     h_min: float = 0.005,
     growth: float = 1.5,
+    fine_h: tuple[float, ...] | None = None,
 ) -> Array:
     """Grid coordinates on [lo, hi]: a line at each break and each fine line, spacing <= h.
 
     Away from ``fine`` the spacing is uniform per interval; towards a fine line the target size
     is ``s(x) = min(h, h_min + (growth - 1) dist(x, fine))``, a geometric grading (eq. (1)):
-    the nodes of each interval between lines sit at equal steps of ``int dx / s``.
+    the nodes of each interval between lines sit at equal steps of ``int dx / s``.  ``fine_h``
+    gives each fine line its own smallest size instead of ``h_min`` (membrane.md sec. 2).
     """
-    fine_in = np.array([f for f in fine if lo < f < hi], dtype=float)
+    sizes = np.full(len(fine), h_min) if fine_h is None else np.asarray(fine_h, dtype=float)
+    if len(sizes) != len(fine):
+        raise InvalidDesign("fine_h", len(sizes), f"one size per fine line ({len(fine)})")
+    keep = np.array([lo <= f <= hi for f in fine], dtype=bool)
+    fine_in, sizes = np.asarray(fine, dtype=float)[keep], sizes[keep]
     pts = np.unique(np.round(np.r_[lo, hi, [b for b in breaks if lo < b < hi], fine_in], 12))
     out = [pts[:1]]
     for a, b in zip(pts[:-1], pts[1:]):
@@ -123,8 +136,8 @@ def graded_axis(
             out.append(np.linspace(a, b, n + 1)[1:])
             continue
         x = np.linspace(a, b, 4001)
-        dist = np.min(np.abs(x[:, None] - fine_in[None, :]), axis=1)
-        dens = 1.0 / np.minimum(h, h_min + (growth - 1.0) * dist)
+        size = np.min(sizes[None, :] + (growth - 1.0) * np.abs(x[:, None] - fine_in[None, :]), axis=1)
+        dens = 1.0 / np.minimum(h, size)
         cum = np.r_[0.0, np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(x))]
         n = max(1, int(np.ceil(cum[-1] - 1e-9)))
         out.append(np.interp(np.linspace(0.0, cum[-1], n + 1)[1:], cum, x))
@@ -137,12 +150,19 @@ def build_mesh(
     ybreaks: tuple[float, ...] = (),
     xfine: tuple[float, ...] = (),
     yfine: tuple[float, ...] = (),
+    xfine_h: tuple[float, ...] | None = None,
+    yfine_h: tuple[float, ...] | None = None,
 ) -> MeshHex:
-    """The tensor hexahedral mesh of the block; breaks become grid lines, graded towards ``*fine``."""
+    """The tensor hexahedral mesh of the block; breaks become grid lines, graded towards ``*fine``
+    (to ``model.h_min``, or to the per-line sizes ``*fine_h``)."""
     g = {"h_min": model.h_min, "growth": model.growth}
-    x = graded_axis(-model.length / 2, model.length / 2, model.h, (0.0, *xbreaks), xfine, **g)
-    y = graded_axis(-model.width / 2, model.width / 2, model.h, (0.0, *ybreaks), yfine, **g)
-    z = np.linspace(0.0, model.height, model.nz + 1)
+    x = graded_axis(-model.length / 2, model.length / 2, model.h, (0.0, *xbreaks), xfine, fine_h=xfine_h, **g)
+    y = graded_axis(-model.width / 2, model.width / 2, model.h, (0.0, *ybreaks), yfine, fine_h=yfine_h, **g)
+    if model.top_h is None:
+        z = np.linspace(0.0, model.height, model.nz + 1)
+    else:
+        hz = model.height / model.nz
+        z = graded_axis(0.0, model.height, hz, (), (model.height,), h_min=model.top_h, growth=model.growth)
     return MeshHex.init_tensor(x, y, z)
 
 

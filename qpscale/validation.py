@@ -48,6 +48,8 @@ FLAG_OF: dict[str, str] = {
     "out": "--out",
     "load_line": "--load-line",
     "mesh_h": "--mesh-h",
+    "roller_radius": "--roller-radius",
+    "top_h": "--top-h",
     "h": "--mesh-h",
     "nz": "--mesh-h",
     "formulation": "--formulation",

@@ -164,3 +164,16 @@ def test_condensed_displacement_matches_a_direct_solve_with_pins_and_ties():
     z = np.zeros(n)
     z[retained], z[c] = zr, zc
     assert np.allclose(cond.displacement(zr), (T @ z).reshape(-1, 3), rtol=0, atol=1e-10 * np.abs(zc).max())
+
+
+def test_top_graded_layers():
+    # top_h: the top layer has about that thickness (the equal steps of int dz / s place it within 25 %:
+    # 0.024 here; a gap between two fine lines is exact, test above), layers grow towards the bottom by at
+    # most the growth ratio (plus 10 %) and never exceed height / nz.
+    model = MembraneModel(h=1.0, nz=3, top_h=0.02, growth=1.5)
+    z = np.unique(np.round(build_mesh(model).p[2], 12))
+    dz = np.diff(z)
+    assert dz[-1] == pytest.approx(0.02, rel=0.25)
+    assert dz.max() <= 0.5 + 1e-12 and np.all(dz[:-1] / dz[1:] < 1.5 * 1.1)
+    with pytest.raises(InvalidDesign, match="top_h"):
+        MembraneModel(nz=3, top_h=0.6)

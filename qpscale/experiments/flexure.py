@@ -29,6 +29,7 @@ from ..tiling import Design, Patch, build_patch
 from ..units import compliance_star
 
 MODES = ("scaled", "isolated", "bare")
+SUPPORTS = ("roller", "strip")
 PENETRATION_TOL = 1e-9
 STEP_TOL = 1e-9  # L: largest change of a retained DOF (scale DOFs, support and plate u_z)
 ACCURACY = "high"  # KKT tolerance 1e-9 of each QP
@@ -51,8 +52,20 @@ class FlexureSetup:
     load_line : {"x", "y"}
         Direction of the plate; supports are parallel to it at +-span/2 across it.
     membrane : MembraneModel
-    span, plate_width, support_width : float
-        Support distance and the widths of the flat rigid plate and support strips, in L.
+    span, plate_width : float
+        Distance between the support lines and the width of the flat rigid plate, in L.
+    supports : {"roller", "strip"}
+        Rigid frictionless rollers (cylinders of radius ``roller_radius`` whose axes lie at
+        ``s = +-span/2`` under the membrane, eq. (10r)), or the former flat strips of width
+        ``support_width`` centred there (the membrane then bears on their inner edges).
+    roller_radius, support_width : float
+        Roller radius and strip width, in L.
+    roller_zone : float
+        Bottom nodes whose initial gap to a roller is at most this (L) carry unilateral rows; the
+        others are checked after the curve and the zone is doubled if one of them penetrates.
+    contact_h : float
+        Element size at the roller lines and (bare membrane) at the plate edges; the mesh is graded
+        from it with the membrane's growth ratio (membrane.md sec. 2).
     max_deflection : float
         Final plate displacement, in L.
     increments : int
@@ -74,7 +87,11 @@ class FlexureSetup:
     membrane: MembraneModel = field(default_factory=MembraneModel)
     span: float = 8.0
     plate_width: float = 0.5
+    supports: str = "roller"
+    roller_radius: float = 0.5
     support_width: float = 0.5
+    roller_zone: float = 0.04
+    contact_h: float = 0.05
     max_deflection: float = 0.2
     increments: int = 5
     contact: bool = True
@@ -87,16 +104,27 @@ class FlexureSetup:
             raise InvalidDesign("mode", self.mode, "{" + ", ".join(MODES) + "}")
         if self.load_line not in ("x", "y"):
             raise InvalidDesign("load_line", self.load_line, "{x, y}")
+        if self.supports not in SUPPORTS:
+            raise InvalidDesign("supports", self.supports, "{" + ", ".join(SUPPORTS) + "}")
         if self.formulation not in ("plane", "feature"):
             raise InvalidDesign("formulation", self.formulation, "{plane, feature}")
-        if self.solver == "osqp" and self.formulation == "plane":
-            # OSQP cannot polish the plane formulation's dependent rows (contact.md sec. 7).
-            object.__setattr__(self, "formulation", "feature")
+        if self.solver == "osqp" and self.formulation == "plane" and self.mode == "scaled":
+            # Refused, not switched: OSQP cannot polish the plane formulation's dependent rows
+            # (formulations/contact.md sec. 7); the feature rows must be asked for by name.
+            raise InvalidDesign(
+                "solver",
+                self.solver,
+                "a backend that solves the plane formulation (clarabel, cvxpy, qpsolvers:*); "
+                "osqp only with formulation='feature'",
+            )
         half = (self.membrane.width if self.load_line == "x" else self.membrane.length) / 2
         checks = [
             ("span", self.span, 0 < self.span / 2 + self.support_width / 2 < half),
             ("plate_width", self.plate_width, 0 < self.plate_width < self.span / 2),
             ("support_width", self.support_width, 0 < self.support_width < self.span / 2),
+            ("roller_radius", self.roller_radius, 0 < self.roller_radius < self.span / 2 - self.plate_width),
+            ("roller_zone", self.roller_zone, 0 < self.roller_zone <= self.roller_radius),
+            ("contact_h", self.contact_h, 0 < self.contact_h <= self.membrane.h),
             ("max_deflection", self.max_deflection, 0 < self.max_deflection <= 1.0),
             ("increments", self.increments, 1 <= int(self.increments) == self.increments <= 200),
         ]
@@ -186,14 +214,25 @@ def _mesh(setup: FlexureSetup, patch: Patch | None) -> MembraneMesh:
     Scale edges parallel to the load line (across which the membrane bends) are graded lines:
     the mesh is refined geometrically towards them, so the free strip between two bonded regions
     is the gap d itself; the other axis-parallel edges are plain grid lines.
+    Rollers: the roller lines ``s = +-span/2`` (and, bare membrane, the plate edges) are graded
+    lines too, from ``contact_h``, so that the contact width under a roller (membrane.md sec. 7)
+    and the plate's edge singularity are resolved.
     """
     s, wp, ws = setup.span / 2, setup.plate_width / 2, setup.support_width / 2
-    cuts = (-s - ws, -s + ws, s - ws, s + ws, -wp, wp)
     xe, ye = _edge_lines(patch) if patch is not None and setup.grade else ((), ())
-    if setup.axis == 1:
-        args = {"xbreaks": xe, "ybreaks": cuts, "yfine": ye}
+    h_gap = setup.membrane.h_min
+    fine, fine_h = tuple(ye if setup.axis == 1 else xe), [h_gap] * len(ye if setup.axis == 1 else xe)
+    if setup.supports == "strip":
+        cuts: tuple[float, ...] = (-s - ws, -s + ws, s - ws, s + ws, -wp, wp)
     else:
-        args = {"xbreaks": cuts, "ybreaks": ye, "xfine": xe}
+        cuts = (-wp, wp)
+        lines = (-s, s) if patch is not None else (-s, s, -wp, wp)
+        fine, fine_h = fine + lines, fine_h + [setup.contact_h] * len(lines)
+    other = xe if setup.axis == 1 else ye
+    if setup.axis == 1:
+        args = {"xbreaks": other, "ybreaks": cuts, "yfine": fine, "yfine_h": tuple(fine_h)}
+    else:
+        args = {"xbreaks": cuts, "ybreaks": other, "xfine": fine, "xfine_h": tuple(fine_h)}
     return MembraneMesh(setup.membrane, build_mesh(setup.membrane, **args))
 
 
@@ -220,6 +259,7 @@ class FlexureModel:
     cond: Condensed
     n_q: int  # 5 * number of scales (first block of the retained DOFs)
     support_idx: np.ndarray  # positions in z_r of the released support u_z (unilateral rows)
+    support_gap: np.ndarray  # their initial gaps g_0 to the support, eq. (10r): rows -u_z <= g_0
     plate_idx: np.ndarray  # bare: positions in z_r of the plate-node u_z
     plate_points: list  # scaled: (scale, body point (3,)) material points under the plate
     condense_s: float
@@ -251,20 +291,60 @@ def build_model(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> Flexur
             ties.append((top[mask], xyz[top[mask], :2], patch.centroids[i]))
     pins = _pins(xyz, bottom)
     T, gen_of = generalised_map(len(xyz), ties, pins)
-    sup_nodes = bottom[_in(supports[0], xyz[bottom, :2]) | _in(supports[1], xyz[bottom, :2])]
+    if setup.supports == "strip":
+        sup_nodes = bottom[_in(supports[0], xyz[bottom, :2]) | _in(supports[1], xyz[bottom, :2])]
+        rows, gap0 = np.zeros(0, int), np.zeros(0)
+    else:
+        sup_nodes, rows, gap0 = _roller_nodes(setup, xyz, bottom)
     n_q = 5 * len(ties)
     n_free = T.shape[1] - n_q
     plate_nodes = top[_in(plate, xyz[top, :2])] if patch is None else np.zeros(0, int)
-    retained = np.r_[n_free + np.arange(n_q), gen_of[3 * plate_nodes + 2]]
+    retained = np.r_[n_free + np.arange(n_q), gen_of[3 * plate_nodes + 2], gen_of[3 * rows + 2]]
     held = gen_of[3 * sup_nodes + 2]
     if (held < 0).any() or (retained < 0).any():
         raise InvalidDesign("mesh", "a support or plate node is tied or pinned", "untied nodes")
     cond = condense(mm.K, T, retained, held)
     points = _plate_points(patch, plate) if patch is not None else []
     plate_idx = n_q + np.arange(len(plate_nodes))
+    support_idx = n_q + len(plate_nodes) + np.arange(len(rows))
     return FlexureModel(
-        setup, mm, patch, cond, n_q, np.zeros(0, int), plate_idx, points, time.perf_counter() - t0
+        setup, mm, patch, cond, n_q, support_idx, gap0, plate_idx, points, time.perf_counter() - t0
     )
+
+
+def roller_gap(setup: FlexureSetup, s: Array) -> Array:
+    """Vertical gap ``g_0(s) = r - sqrt(r^2 - (s - s_c)^2)`` of bottom points over the nearer roller,
+    eq. (10r) (inf where no roller lies below: ``|s - s_c| >= r``)."""
+    r, sc = setup.roller_radius, setup.span / 2
+    ds = np.abs(np.abs(s) - sc)
+    out = np.full(np.shape(s), np.inf)
+    below = ds < r
+    out[below] = r - np.sqrt(r**2 - ds[below] ** 2)
+    return out
+
+
+def roller_penetration(model: FlexureModel, states: list[FlexureState]) -> float:
+    """Largest penetration (L) of a bottom node without a row into a roller over the curve's states."""
+    if model.setup.supports != "roller":
+        return 0.0
+    bottom = model.mm.face_nodes(False)
+    g0 = roller_gap(model.setup, model.mm.nodes[bottom, model.setup.axis])
+    free = np.isfinite(g0) & (g0 > model.setup.roller_zone)
+    if not free.any():
+        return 0.0
+    uz = [model.cond.displacement(st.z)[bottom[free], 2] for st in states]
+    return max(0.0, float(np.max(-(np.array(uz) + g0[free]))))
+
+
+def _roller_nodes(
+    setup: FlexureSetup, xyz: Array, bottom: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, Array]:
+    """Bottom nodes over the rollers: those on a roller line (gap 0, held closed) and the others
+    within the zone (``0 < g_0 <= roller_zone``; retained with the rows of eq. (10r)) and their gaps."""
+    g0 = roller_gap(setup, xyz[bottom, setup.axis])
+    on_line = g0 < 1e-12
+    near = (g0 <= setup.roller_zone) & ~on_line
+    return bottom[on_line], bottom[near], g0[near]
 
 
 def _release_tensile(model: FlexureModel, z: Array) -> tuple[FlexureModel, Array, int]:
@@ -285,7 +365,8 @@ def _release_tensile(model: FlexureModel, z: Array) -> tuple[FlexureModel, Array
 def released_supports(model: FlexureModel, dofs: np.ndarray) -> FlexureModel:
     """``model`` with the held support DOFs ``dofs`` turned into retained DOFs with unilateral rows."""
     idx = np.r_[model.support_idx, len(model.cond.retained) + np.arange(len(dofs))]
-    return replace(model, cond=model.cond.released(dofs), support_idx=idx)
+    gap = np.r_[model.support_gap, np.zeros(len(dofs))]
+    return replace(model, cond=model.cond.released(dofs), support_idx=idx, support_gap=gap)
 
 
 def support_forces(model: FlexureModel, z: Array) -> tuple[np.ndarray, Array, Array]:
@@ -512,7 +593,7 @@ def _solve_level(
         if setup.formulation == "feature":
             history = [*history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
             Gc, hc, merged = _merge_rows(model, history, z)
-        res = _solve_qp(model, Gp, hp, Gs, Gc, hc, inc)
+        res = _solve_qp(model, Gp, hp, Gs, model.support_gap, Gc, hc, inc)
         x, lam = res.x[:n], np.asarray(res.z[len(hp) + ns :])
         if cs is not None and cs.planes is not None and cs.planes.count:
             theta = _pinned_only(res.x[n:], cs, lam)
@@ -539,17 +620,19 @@ def _solve_qp(
     Gp: Array,
     hp: Array,
     Gs: sp.csr_matrix,
+    hs: Array,
     Gc: sp.csr_matrix,
     hc: Array,
     inc: int,
 ):
-    """QP (13) over ``(z, theta)``: plate, support and contact rows; ``PLANE_PROX`` on the planes."""
+    """QP (13) over ``(z, theta)``: plate, support (``Gs z <= hs``) and contact rows; ``PLANE_PROX``
+    on the planes."""
     n = Gs.shape[1]
     extra = Gc.shape[1] - n
     P = sp.block_diag([model.S, PLANE_PROX * sp.identity(extra)], format="csc") if extra else model.S
     pad = sp.csr_matrix((Gp.shape[0] + Gs.shape[0], extra))
     G = sp.vstack([sp.hstack([sp.vstack([sp.csr_matrix(Gp), Gs]), pad]), Gc], format="csc")
-    qp = IncrementQP(P, np.zeros(n + extra), G, np.r_[hp, np.zeros(Gs.shape[0]), hc])
+    qp = IncrementQP(P, np.zeros(n + extra), G, np.r_[hp, hs, hc])
     try:
         return solve_qp(qp, solver=model.setup.solver, accuracy=ACCURACY)
     except SolverFailure as exc:
@@ -559,10 +642,17 @@ def _solve_qp(
 def run_flexure(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> FlexureResult:
     """The force-deflection curve of three-point bending and C_f* (formulations/membrane.md eq. (14)).
 
-    ``mesh`` replaces the mesh of section 2 (``build_model``).
+    ``mesh`` replaces the mesh of section 2 (``build_model``).  Rollers: if a bottom node outside
+    ``roller_zone`` ends up inside a roller, the zone is doubled and the curve run again
+    (membrane.md sec. 7).
     """
     t0 = time.perf_counter()
-    return run_model(build_model(setup, mesh), t0)
+    while True:
+        result = run_model(build_model(setup, mesh), t0)
+        over = roller_penetration(result.extras["model"], result.extras["states"])
+        if over <= PENETRATION_TOL or setup.roller_zone >= setup.roller_radius:
+            return replace(result, max_penetration=max(result.max_penetration, over))
+        setup = replace(setup, roller_zone=min(2.0 * setup.roller_zone, setup.roller_radius))
 
 
 def run_model(model: FlexureModel, t0: float | None = None) -> FlexureResult:
@@ -576,6 +666,7 @@ def run_model(model: FlexureModel, t0: float | None = None) -> FlexureResult:
     t0 = time.perf_counter() if t0 is None else t0
     setup = model.setup
     z = np.zeros(len(model.cond.retained))
+    n_rows0 = len(model.support_idx)
     ws = np.linspace(0.0, setup.max_deflection, setup.increments + 1)
     states: list[FlexureState] = []
     cs = None
@@ -616,5 +707,5 @@ def run_model(model: FlexureModel, t0: float | None = None) -> FlexureResult:
         wall,
         model.condense_s,
         z,
-        {"model": model, "states": states, "released": len(model.support_idx)},
+        {"model": model, "states": states, "released": len(model.support_idx) - n_rows0},
     )
