@@ -77,13 +77,17 @@ def terminate_pool(pool: ProcessPoolExecutor, timeout_s: float = 5.0) -> None:
     for proc in processes:
         with contextlib.suppress(Exception):
             proc.terminate()
-    pool.shutdown(wait=False, cancel_futures=True)
     for proc in processes:
         with contextlib.suppress(Exception):
             proc.join(timeout_s)
             if proc.is_alive():
                 proc.kill()
                 proc.join(timeout_s)
+    # With every worker reaped, the pool's manager thread sees them gone and ends; joining it here
+    # (wait=True) matters: left running, the interpreter's exit hook for process pools woke it
+    # through a closed pipe (a traceback on stderr) or waited on it (a Ctrl-C'd paper run that
+    # never exited, seen under load in CI).
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def worker_init() -> None:
