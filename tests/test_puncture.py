@@ -273,7 +273,7 @@ def test_default_scene_independent_of_increment_size():
 @pytest.mark.slow
 def test_other_plane_update_rescues_a_level_and_keeps_Fc():
     # The 3x3 triangle array slanted 60 deg at 45 deg, at its worst vertex: with either plane
-    # update some level fails to converge and the other update converges it (a 'plane_damping'
+    # update some level fails to converge and the other update converges it (an 'other_plane_update'
     # event; measured 3 undamped-first, 1 damped-first). A level's converged state is a fixed point
     # of both iterations (increment.md sec. 4b), so the two paths are the same path: F_c at the
     # issue's 1e-6 (measured 6.6e-9).
