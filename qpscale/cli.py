@@ -22,7 +22,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from functools import wraps
 from pathlib import Path
-from typing import Any, NoReturn, TypeVar
+from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
@@ -535,22 +535,6 @@ def flexure(
     finish(report, as_json, summary)
 
 
-def _exit_interrupted(code: int) -> NoReturn:
-    """Leave an interrupted study now, once its workers are stopped and its files are safe.
-
-    The interpreter's exit hooks for process pools and their queues join threads that served the
-    terminated workers; under load a Ctrl-C'd ``paper`` run was seen to wait there past a minute
-    (the kill test timed out in three of four CI runs from a fresh clone).  Nothing is left for
-    them to do, so a real process exits at once (``os._exit``, after flushing); under a test
-    runner's in-process invocation the usual exit is kept.
-    """
-    if _real_stdout():
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
-    raise typer.Exit(code)
-
-
 class _Terminated(KeyboardInterrupt):
     """SIGTERM, raised in the main thread so that a study cleans up as on Ctrl-C."""
 
@@ -627,7 +611,7 @@ def paper(
                 f"error: {what}: finished scenes are saved in {out_dir / 'scenes'}; rerun the same "
                 "command to resume"
             )
-            _exit_interrupted(143 if isinstance(exc, _Terminated) else EXIT_INTERRUPTED)
+            raise typer.Exit(143 if isinstance(exc, _Terminated) else EXIT_INTERRUPTED) from None
     failed = result.table[result.table["status"] != "ok"]
     payload = {
         "out": str(out_dir),
