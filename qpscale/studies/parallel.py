@@ -73,11 +73,7 @@ def pmap(
 
 def terminate_pool(pool: ProcessPoolExecutor, timeout_s: float = 5.0) -> None:
     """Stop a process pool now: pending tasks cancelled, running workers terminated and reaped."""
-    # The pool's own list, and every child process this process started: a worker whose start
-    # the interrupt cut short is running but not yet in the pool's list (it ignores SIGINT, and
-    # the pool's shutdown then waited for it to finish its task).
     processes = list((getattr(pool, "_processes", None) or {}).values())
-    processes += [p for p in multiprocessing.active_children() if p not in processes]
     for proc in processes:
         with contextlib.suppress(Exception):
             proc.terminate()
