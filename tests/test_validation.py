@@ -429,6 +429,10 @@ def test_reused_vtk_directory_holds_only_the_new_series(tmp_path):
     assert listed == 2
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _children(pid: int) -> set[int]:
     """Process ids whose parent is ``pid`` (Linux /proc)."""
     out = set()
@@ -461,6 +465,11 @@ def test_paper_killed_leaves_no_worker_and_no_complete_looking_table(tmp_path, s
         stderr=subprocess.PIPE,
         env=env,
         start_new_session=True,  # its own process group, as a shell job has
+        # A terminal's foreground job has SIGINT at its default; a test runner started in the
+        # background (a shell without job control, '... &') has it ignored, the child inherits
+        # that, and Python then never raises KeyboardInterrupt: Ctrl-C must be simulated as a
+        # terminal delivers it.
+        preexec_fn=_default_sigint,
     )
     workers: set[int] = set()
     deadline = time.monotonic() + 60
