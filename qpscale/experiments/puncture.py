@@ -21,7 +21,7 @@ from ..contact import ContactSettings
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Branch, ContactChange, Event, Failure, Rescue, Snap
 from ..geometry import tilt
-from ..increment import Equilibrium, LevelOutcome, LoadPoint, SQPSettings, solve_level
+from ..increment import STEP_TOL, Equilibrium, LevelOutcome, LoadPoint, SQPSettings, solve_level
 from ..mirror import Mirror, map_dofs
 from ..stability import Stability, second_variation
 from ..substrate import SubstrateModel, stiffness_matrix
@@ -400,14 +400,16 @@ class _Path:
         the load supplied, which no quasi-static path reaches: the SQP leapt into a higher basin
         (seen on the 5x5 dart: a step of 1.4e-5 L to a state of 150 times the stored energy).
 
-        Below what the states can resolve nothing is flagged: each state is converged to
-        ``step_tol`` in q (within ``STATE_ERROR`` steps of it), so each stored energy is known to
-        ``STATE_ERROR step_tol |K q|_1``.  Without that floor a short step at a small load
-        (W ~ 1e-9) was flagged on noise alone, its bisection stopped each increment at a few
-        micro-L, and the 3x3 hexagon array slanted 60 deg at 45 deg ended at a tilt of 0.04 deg
-        after 400 increments (puncture.md sec. 2).
+        Below what the states can resolve nothing is flagged: a state of the high accuracy is
+        converged to ``STEP_TOL`` (1e-8) in q (within ``STATE_ERROR`` steps of it), so its stored
+        energy is known to ``STATE_ERROR STEP_TOL |K q|_1``.  The floor stays at that of the high
+        accuracy whatever the QP tolerance: scaled with a looser step test (1e-5 at ``mid``) it let
+        a real jump of the 3x3 square's contact-mode path through (F_c 2.5e-3 off).  Without the
+        floor a short step at a small load (W ~ 1e-9) was flagged on noise alone, its bisection
+        stopped each increment at a few micro-L, and the 3x3 hexagon array slanted 60 deg at
+        45 deg ended at a tilt of 0.04 deg after 400 increments (puncture.md sec. 2).
         """
-        floor = STATE_ERROR * self.setup.sqp.step_tol * (self._force_norm(a) + self._force_norm(b))
+        floor = STATE_ERROR * STEP_TOL * (self._force_norm(a) + self._force_norm(b))
         return abs(self.released(a, b)) > SNAP_WORK * abs(_work(a, b)) + floor
 
     def _force_norm(self, eq: Equilibrium) -> float:
