@@ -538,22 +538,15 @@ def iterate_level(
 
 
 def _solve(qp: IncrementQP, solver: str, accuracy: str | float) -> IncrementResult:
-    """``solve_qp`` without raising on a rejected answer (``found`` says), with the reason in
-    ``extras["detail"]``; a backend that raises (bad data, an exception inside it) is a rejected
+    """``solve_qp`` without raising on a rejected answer (``found`` says, the reason is in
+    ``extras["detail"]``); a backend that raises (bad data, an exception inside it) is a rejected
     answer too."""
     try:
-        res = solve_qp(qp, solver=solver, accuracy=accuracy, check=False)
+        return solve_qp(qp, solver=solver, accuracy=accuracy, check=False)
     except SolverFailure as exc:
         return IncrementResult(
             None, None, None, False, exc.status, None, None, 0.0, 0.0, extras={"detail": exc.detail}
         )
-    if not res.found:
-        r = res.residuals
-        detail = "no solution returned" if r is None else ", ".join(f"{k}={v:.3g}" for k, v in r.items())
-        tol = resolve_tolerance(accuracy)
-        detail = f"{detail}; tolerance {tol:g}; rejected by {res.extras.get('rejected_by')}"
-        res = replace(res, extras={**res.extras, "detail": detail})
-    return res
 
 
 def solve_level(
@@ -576,13 +569,11 @@ def solve_level(
     state is a fixed point of both.  A level that fails both ways reports the first attempt's
     failure (the update the caller asked for).
     """
-    args = (patch, K, q0, load, delta, contact)
-    kw = {"increment": increment, "previous": previous, "mirror": mirror}
-    first = iterate_level(*args, settings, **kw)  # type: ignore[arg-type]
+    first = iterate_level(patch, K, q0, load, delta, contact, settings, increment, previous, mirror)
     if first.converged or contact is None or contact.formulation != "plane":
         return first
     other = replace(settings, plane_damping=not settings.plane_damping)
-    second = iterate_level(*args, other, **kw)  # type: ignore[arg-type]
+    second = iterate_level(patch, K, q0, load, delta, contact, other, increment, previous, mirror)
     if not second.converged:
         return replace(first, rescues=first.rescues + second.rescues)
     fired = Rescue("other_plane_update", delta, increment, "damped" if other.plane_damping else "undamped")

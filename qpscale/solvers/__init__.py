@@ -162,7 +162,7 @@ def solve_qp(
         Absolute tolerance on every KKT residual: 1e-9, 1e-6, 1e-3, or the float given.
     check : bool
         If True a failed status or a residual above the tolerance raises; if False the result
-        comes back with ``found=False``.
+        comes back with ``found=False`` and the reason in ``extras["detail"]``.
     warm_start : IncrementResult or ndarray (n,), optional
         A previous solution; used by backends that can (OSQP, some qpsolvers), ignored otherwise.
     options : dict, optional
@@ -203,11 +203,13 @@ def solve_qp(
             # The time of both attempts is the cost of this solve.
             build_s, solve_s = raw.build_s + second.build_s, raw.solve_s + second.solve_s
             result = replace(second, build_s=build_s, solve_s=solve_s, extras=extras)
-    if check and not result.found:
+    if not result.found:
         res = result.residuals
         detail = "no solution returned" if res is None else ", ".join(f"{k}={v:.3g}" for k, v in res.items())
         detail = f"{detail}; tolerance {tol:g}; rejected by {result.extras.get('rejected_by')}"
-        raise SolverFailure(solver, result.status, detail=detail)
+        result = replace(result, extras={**result.extras, "detail": detail})
+        if check:
+            raise SolverFailure(solver, result.status, detail=detail)
     return result
 
 
