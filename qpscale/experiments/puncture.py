@@ -23,6 +23,7 @@ from ..events import Branch, ContactChange, Event, Failure, Rescue, Snap
 from ..geometry import tilt
 from ..increment import STEP_TOL, Equilibrium, LevelOutcome, LoadPoint, SQPSettings, solve_level
 from ..mirror import Mirror, map_dofs
+from ..penalty import PenaltySettings
 from ..stability import Stability, second_variation
 from ..substrate import SubstrateModel, stiffness_matrix
 from ..threads import limited_blas
@@ -76,7 +77,7 @@ class PunctureSetup:
     increments: int = 16
     max_increments: int = 400
     probe: bool = True
-    penalty: object | None = None
+    penalty: PenaltySettings | None = None
 
     def __post_init__(self) -> None:
         if self.interaction not in INTERACTIONS:
@@ -87,6 +88,8 @@ class PunctureSetup:
             raise InvalidDesign("phi_c_deg", self.phi_c_deg, "(0, 60]")
         if not 0.0 <= self.nu <= 0.5:
             raise InvalidDesign("nu", self.nu, "[0, 0.5]")
+        if self.penalty is not None and not isinstance(self.penalty, PenaltySettings):
+            raise InvalidDesign("penalty", type(self.penalty).__name__, "PenaltySettings or None")
         if not 2 <= self.increments <= self.max_increments:
             raise InvalidDesign("increments", self.increments, f"[2, {self.max_increments}]")
         if self.sqp.solver in PLANE_INCAPABLE and self.contact.formulation == "plane" and self.contact_on:
@@ -262,11 +265,9 @@ class _Path:
         return outcome
 
     def _penalty_solve(self, start: Equilibrium, delta: float, index: int) -> LevelOutcome:
-        from ..penalty import PenaltySettings, penalty_level
+        from ..penalty import penalty_level
 
         settings = self.setup.penalty if self.setup.penalty is not None else PenaltySettings()
-        if not isinstance(settings, PenaltySettings):
-            raise InvalidDesign("penalty", type(settings).__name__, "PenaltySettings or None")
         return penalty_level(
             self.patch,
             self.K,  # type: ignore[arg-type]
