@@ -270,17 +270,22 @@ def output_dir(name: str, path: object) -> Path:
 # --- bounded cost ---------------------------------------------------------------------------
 
 
-def max_memory_gb(value: object = None) -> float:
-    """The memory limit in GB: ``value``, else ``$QPSCALE_MAX_MEMORY_GB``, else 4."""
+def _limit(name: str, value: object, env_name: str, default: float, unit: str, units: str) -> float:
+    """A positive limit: ``value``, else the environment variable ``env_name``, else ``default``."""
     if value is None:
-        env = os.environ.get(MEMORY_ENV)
+        env = os.environ.get(env_name)
         if env is None:
-            return DEFAULT_MAX_MEMORY_GB
+            return default
         try:
             value = float(env)
         except ValueError:
-            raise InvalidDesign(MEMORY_ENV, env, "a number of GB in (0, inf)") from None
-    return real("max_memory_gb", value, 0.0, None, lo_open=True, unit="GB")
+            raise InvalidDesign(env_name, env, f"a number of {units} in (0, inf)") from None
+    return real(name, value, 0.0, None, lo_open=True, unit=unit)
+
+
+def max_memory_gb(value: object = None) -> float:
+    """The memory limit in GB: ``value``, else ``$QPSCALE_MAX_MEMORY_GB``, else 4."""
+    return _limit("max_memory_gb", value, MEMORY_ENV, DEFAULT_MAX_MEMORY_GB, "GB", "GB")
 
 
 def puncture_memory_gb(n_scales: int, n_contact_pairs: int) -> float:
@@ -324,15 +329,7 @@ def memory(estimate_gb: float, limit_gb: float, parameter: str, value: object, w
 
 def max_minutes(value: object = None) -> float:
     """The time limit in minutes: ``value``, else ``$QPSCALE_MAX_MINUTES``, else 60."""
-    if value is None:
-        env = os.environ.get(MINUTES_ENV)
-        if env is None:
-            return DEFAULT_MAX_MINUTES
-        try:
-            value = float(env)
-        except ValueError:
-            raise InvalidDesign(MINUTES_ENV, env, "a number of minutes in (0, inf)") from None
-    return real("max_minutes", value, 0.0, None, lo_open=True, unit="min")
+    return _limit("max_minutes", value, MINUTES_ENV, DEFAULT_MAX_MINUTES, "min", "minutes")
 
 
 def puncture_time_s(n_scales: int, n_contact_pairs: int, probe: bool = True) -> float:
