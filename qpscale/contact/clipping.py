@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .contact_sat import SAT, Bodies, World
-from .geometry import Array
+from ..geometry import Array
+from .separation import SAT, Bodies, World
 
 # Point kinds (ContactSet.kind); formulations/contact.md, section 3.4.
 VERTEX_FACE, CROSSING, EDGE_EDGE, FACE_FACE, SAMPLE, VERTEX_PLANE = range(6)

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import Array
-from .geometry import rotation_matrices as rotations
-from .tiling import Patch
+from ..geometry import Array
+from ..geometry import rotation_matrices as rotations
+from ..tiling import Patch
 
 # Edge pairs whose unit directions have |d_a x d_b| below this (sine of their angle) give no axis.
 PARALLEL_SIN = 1e-6

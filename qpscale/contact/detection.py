@@ -1,8 +1,8 @@
 """Contact between rigid scales: penetration, contact sets, gap Jacobians and contact forces.
 
 Implements formulations/contact.md: the exact signed separation of convex pieces (section 2,
-eqs. (3)-(7), in :mod:`qpscale.contact_sat`), the contact points (section 3, eqs. (8)-(13), in
-:mod:`qpscale.contact_clip`), the linearised gap g + J dq (section 4, eqs. (14)-(17)) and the
+eqs. (3)-(7), in :mod:`qpscale.contact.separation`), the contact points (section 3, eqs. (8)-(13),
+in :mod:`qpscale.contact.clipping`), the linearised gap g + J dq (section 4, eqs. (14)-(17)) and the
 generalised contact forces J' lam (section 5, eq. (18)).
 
 Sign conventions: the normal n_k of contact point k points from scale a to scale b, the gap
@@ -17,13 +17,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.sparse as sp
 
-from .contact_clip import KIND_NAMES, VERTEX_PLANE, Points, edge_points, face_points, plane_points
-from .contact_plane import SIDE_B, Planes, plane_rows
-from .contact_sat import World, bodies_of, place, separate
-from .errors import InvalidDesign
-from .geometry import Array, tangent_operators
-from .mirror import Mirror
-from .tiling import Patch
+from ..errors import InvalidDesign
+from ..geometry import Array, tangent_operators
+from ..tiling import Patch
+from .clipping import KIND_NAMES, VERTEX_PLANE, Points, edge_points, face_points, plane_points
+from .planes import SIDE_B, Planes, plane_rows
+from .separation import World, bodies_of, place, separate
+from .symmetry import Mirror
 
 MODES = ("full", "vertex")
 FORMULATIONS = ("plane", "feature")

@@ -1,0 +1,41 @@
+"""Contact between rigid scales (formulations/contact.md): detection, rows, symmetry.
+
+The public API is re-exported here, so ``from qpscale.contact import detect_contacts`` is all a
+caller needs.  Where things live:
+
+- :mod:`.detection`: the settings, the contact set of a configuration and how it is found
+  (both formulations, the feature formulation's axis choice), and the overlap depth;
+- :mod:`.separation`: the placed convex pieces and the separating-axis test between them;
+- :mod:`.clipping`: the feature formulation's contact points (face clipping, edge-edge points);
+- :mod:`.planes`: the plane formulation's separating planes and their vertex rows;
+- :mod:`.symmetry`: a mirror symmetry held on a path (DOF modes, the planes' images).
+"""
+
+from .clipping import KIND_NAMES
+from .detection import (
+    FORMULATIONS,
+    MODES,
+    ContactSet,
+    ContactSettings,
+    contact_forces,
+    detect_contacts,
+    gap_jacobian,
+    penetration,
+)
+from .planes import Planes
+from .symmetry import Mirror, map_dofs
+
+__all__ = [
+    "FORMULATIONS",
+    "KIND_NAMES",
+    "MODES",
+    "ContactSet",
+    "ContactSettings",
+    "Mirror",
+    "Planes",
+    "contact_forces",
+    "detect_contacts",
+    "gap_jacobian",
+    "map_dofs",
+    "penetration",
+]
