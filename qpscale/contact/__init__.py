@@ -5,6 +5,7 @@ caller needs.  Where things live:
 
 - :mod:`.detection`: the settings, the contact set of a configuration and how it is found
   (both formulations, the feature formulation's axis choice), and the overlap depth;
+- :mod:`.rows`: the linearised rows of a contact set (gap Jacobian) and their contact forces;
 - :mod:`.separation`: the placed convex pieces and the separating-axis test between them;
 - :mod:`.clipping`: the feature formulation's contact points (face clipping, edge-edge points);
 - :mod:`.planes`: the plane formulation's separating planes and their vertex rows;
@@ -12,17 +13,9 @@ caller needs.  Where things live:
 """
 
 from .clipping import KIND_NAMES
-from .detection import (
-    FORMULATIONS,
-    MODES,
-    ContactSet,
-    ContactSettings,
-    contact_forces,
-    detect_contacts,
-    gap_jacobian,
-    penetration,
-)
+from .detection import FORMULATIONS, MODES, ContactSet, ContactSettings, detect_contacts, penetration
 from .planes import Planes
+from .rows import contact_forces, gap_jacobian
 from .symmetry import Mirror, map_dofs
 
 __all__ = [
