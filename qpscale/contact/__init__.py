@@ -6,7 +6,8 @@ caller needs.  Where things live:
 - :mod:`.detection`: the settings, the contact set of a configuration and how it is found
   (both formulations, the feature formulation's axis choice), and the overlap depth;
 - :mod:`.rows`: the linearised rows of a contact set (gap Jacobian) and their contact forces;
-- :mod:`.separation`: the placed convex pieces and the separating-axis test between them;
+- :mod:`.placement`: the convex pieces of the scales, in body frame and placed by the DOFs;
+- :mod:`.separation`: the separating-axis test between placed pieces;
 - :mod:`.clipping`: the feature formulation's contact points (face clipping, edge-edge points);
 - :mod:`.planes`: the plane formulation's separating planes and their vertex rows;
 - :mod:`.symmetry`: a mirror symmetry held on a path (DOF modes, the planes' images).

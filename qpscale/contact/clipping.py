@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import Array
-from .separation import SAT, Bodies, World
+from .placement import Bodies, World
+from .separation import SAT
 
 # Point kinds (ContactSet.kind); formulations/contact.md, section 3.4.
 VERTEX_FACE, CROSSING, EDGE_EDGE, FACE_FACE, SAMPLE, VERTEX_PLANE = range(6)

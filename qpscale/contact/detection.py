@@ -24,8 +24,9 @@ from ..errors import InvalidDesign
 from ..geometry import Array
 from ..tiling import Patch
 from .clipping import KIND_NAMES, VERTEX_PLANE, Points, edge_points, face_points, plane_points
+from .placement import World, bodies_of, place
 from .planes import SIDE_B, Planes, plane_rows
-from .separation import World, bodies_of, place, separate
+from .separation import separate
 from .symmetry import Mirror
 
 MODES = ("full", "vertex")

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import Array
-from .separation import SAT, World
+from .placement import World
+from .separation import SAT
 from .symmetry import Mirror
 
 # Vertex of the piece facing the plane's positive side (b) and of the one behind it (a).

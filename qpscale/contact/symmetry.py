@@ -19,7 +19,7 @@ import numpy as np
 
 from ..geometry import Array
 from ..tiling import Patch
-from .separation import bodies_of
+from .placement import bodies_of
 
 # Vertices of a piece and of its image must coincide to this, in L.
 _MATCH_TOL = 1e-6
