@@ -1,4 +1,4 @@
-"""A path held symmetric: formulations/contact.md section 8 (qpscale/mirror.py)."""
+"""A path held symmetric: formulations/contact.md section 8 (qpscale/contact/symmetry.py)."""
 
 from __future__ import annotations
 
