@@ -16,10 +16,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
+from .contact.symmetry import Mirror
 from .errors import InvalidDesign, SolverFailure
 from .events import Rescue
 from .geometry import rotation_matrix, tangent_operator
-from .mirror import Mirror
 from .qp import IncrementQP, IncrementResult, resolve_tolerance
 from .solvers import solve_qp
 from .tiling import Patch

@@ -28,7 +28,7 @@ import numpy.polynomial.polynomial as P
 import scipy.linalg as la
 
 from .contact import ContactSet
-from .contact_plane import tangent_basis
+from .contact.planes import tangent_basis
 from .errors import SolverFailure
 from .geometry import Array, rotation_matrices, tangent_operators
 from .increment import Equilibrium, LoadPoint

@@ -16,7 +16,7 @@ from qpscale.geometry import rotation_matrix, tangent_operator
 from qpscale.geometry import tangent_operators as tangents
 
 # These tests check the feature formulation's contact points (clipping, edge-edge closest points);
-# the plane formulation has its own tests in tests/test_contact_plane.py.
+# the plane formulation (qpscale.contact.planes) has its own test module beside this one.
 FEATURE = ContactSettings(formulation="feature")
 
 S2 = np.sqrt(2.0)

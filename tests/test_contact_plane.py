@@ -9,7 +9,7 @@ import pytest
 
 from qpscale import Design
 from qpscale.contact import ContactSettings, contact_forces, detect_contacts, gap_jacobian, penetration
-from qpscale.contact_plane import tangent_basis
+from qpscale.contact.planes import tangent_basis
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
 from qpscale.geometry import rotation_matrices
 from qpscale.increment import SQPSettings, solve_equilibrium

@@ -206,7 +206,8 @@ def test_contact_forces_only_where_scales_touch(square_x):
     # Complementarity checked against the exact geometry at the converged state: a contact row carries
     # force only if its scale pair is in contact (exact separation below 1e-7 L, i.e. closed to
     # solver accuracy while the open gaps are d = 5e-3 L), and at least one pair does carry force.
-    from qpscale.contact_sat import place, separate
+    from qpscale.contact.placement import place
+    from qpscale.contact.separation import separate
 
     state = square_x.extras["states"][-1]
     model = square_x.extras["model"]

@@ -1,4 +1,4 @@
-"""A path held symmetric: formulations/contact.md section 8 (qpscale/mirror.py)."""
+"""A path held symmetric: formulations/contact.md section 8 (qpscale/contact/symmetry.py)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import pytest
 
 from qpscale import Design
 from qpscale.contact import detect_contacts
+from qpscale.contact.symmetry import Mirror, map_dofs
 from qpscale.experiments.puncture import PunctureSetup, _load_point, _Path, _predict, build_model
 from qpscale.experiments.symmetry import mirror_through, patch_symmetries
 from qpscale.increment import SQPSettings, solve_equilibrium
-from qpscale.mirror import Mirror, map_dofs
 
 CORNER = np.array([1.0, 1.0])  # a corner of the 3x3 square's loaded scale: on the diagonal mirror
 

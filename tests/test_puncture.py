@@ -11,12 +11,12 @@ from typer.testing import CliRunner
 from qpscale import Design
 from qpscale.cli import app
 from qpscale.contact import ContactSettings
+from qpscale.contact.symmetry import map_dofs
 from qpscale.errors import InvalidDesign
 from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture, top_vertices
 from qpscale.experiments.symmetry import mirror_through, vertex_orbits
 from qpscale.geometry import tilt
 from qpscale.increment import SQPSettings
-from qpscale.mirror import map_dofs
 from qpscale.solvers import available_solvers
 from qpscale.substrate import SubstrateModel, isolated_block
 

@@ -18,11 +18,11 @@ from typing import Any
 import numpy as np
 
 from ..contact import ContactSettings
+from ..contact.symmetry import Mirror, map_dofs
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Branch, ContactChange, Event, Failure, Rescue, Snap
 from ..geometry import tilt
 from ..increment import STEP_TOL, Equilibrium, LevelOutcome, LoadPoint, SQPSettings, solve_level
-from ..mirror import Mirror, map_dofs
 from ..penalty import PenaltySettings
 from ..stability import Stability, second_variation
 from ..substrate import SubstrateModel, stiffness_matrix

@@ -1,9 +1,13 @@
-"""Contact between rigid scales: penetration, contact sets, gap Jacobians and contact forces.
+"""Contact detection: the settings, the contact set of a configuration, and the overlap depth.
 
-Implements formulations/contact.md: the exact signed separation of convex pieces (section 2,
-eqs. (3)-(7), in :mod:`qpscale.contact_sat`), the contact points (section 3, eqs. (8)-(13), in
-:mod:`qpscale.contact_clip`), the linearised gap g + J dq (section 4, eqs. (14)-(17)) and the
-generalised contact forces J' lam (section 5, eq. (18)).
+Implements formulations/contact.md as a caller sees it: the piece pairs closer than the margin
+(the signed separation of section 2, eqs. (3)-(7), in :mod:`qpscale.contact.separation`) and the
+rows they carry, gathered in a :class:`ContactSet`.  For the feature formulation these are the
+contact points of section 3, eqs. (8)-(13) (in :mod:`qpscale.contact.clipping`), merged here where
+they coincide (section 3.3), with the decisions of section 6 (the sticky axis choice, the face
+plane of an empty clipping) taken here; for the plane formulation, the vertex rows of section 7
+(in :mod:`qpscale.contact.planes`).  The linearised gap g + J dq and the contact forces J' lam of
+a set (sections 4-5) are in :mod:`qpscale.contact.rows`.
 
 Sign conventions: the normal n_k of contact point k points from scale a to scale b, the gap
 g_k = n_k . (xb_k - xa_k) is positive when apart, and a multiplier lam_k >= 0 pushes b along
@@ -15,15 +19,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.sparse as sp
 
-from .contact_clip import KIND_NAMES, VERTEX_PLANE, Points, edge_points, face_points, plane_points
-from .contact_plane import SIDE_B, Planes, plane_rows
-from .contact_sat import World, bodies_of, place, separate
-from .errors import InvalidDesign
-from .geometry import Array, tangent_operators
-from .mirror import Mirror
-from .tiling import Patch
+from ..errors import InvalidDesign
+from ..geometry import Array
+from ..tiling import Patch
+from .clipping import KIND_NAMES, VERTEX_PLANE, Points, edge_points, face_points, plane_points
+from .placement import World, bodies_of, place
+from .planes import SIDE_B, Planes, plane_rows
+from .separation import separate
+from .symmetry import Mirror
 
 MODES = ("full", "vertex")
 FORMULATIONS = ("plane", "feature")
@@ -388,65 +392,3 @@ def _unique_rows(pp: np.ndarray, normal: Array, xa: Array, xb: Array, tol: float
         same = (key[s:] == key[:-s]) & (np.abs(feat[s:] - feat[:-s]).max(axis=1) < tol)
         dup[s:] |= same
     return np.sort(order[~dup])
-
-
-def _dof_rows(cs: ContactSet, q: Array, centre: Array) -> tuple[Array, Array]:
-    """dg/dq_b and dg/dq_a, each ``(m, 5)``: eq. (16).
-
-    A plane row moves only its own vertex (eq. (21)): the other scale's block is zero.
-    """
-    T = tangent_operators(q[:, 3:5])
-    n = cs.normal
-    rb = np.cross(cs.xb - centre[cs.b], n)
-    ra = np.cross(cs.xa - centre[cs.a], n)
-    wb = np.hstack([n, np.einsum("mji,mj->mi", T[cs.b], rb)])
-    wa = np.hstack([n, np.einsum("mji,mj->mi", T[cs.a], ra)])
-    wb[cs.side < 0] = 0.0
-    wa[cs.side > 0] = 0.0
-    return wb, -wa
-
-
-def gap_jacobian(cs: ContactSet, patch: Patch, q: Array) -> sp.csr_matrix:
-    """Jacobian ``(m, 5 n + cs.n_extra)`` of the gaps: eqs. (14)-(17) and (21).
-
-    Columns follow scale-major DOF order [u_x, u_y, u_z, phi_x, phi_y] per scale, then the
-    three unknowns (two normal rotations, one shift) of every separating plane.  Built from
-    triplets (10 entries per row, 13 for plane rows).
-    """
-    q = _check_q(patch, q)
-    centre = np.zeros((patch.n_scales, 3))
-    centre[:, :2] = patch.centroids
-    centre += q[:, :3]
-    wb, wa = _dof_rows(cs, q, centre)
-    rows = np.repeat(np.arange(cs.m), 10)
-    cols = np.hstack([5 * cs.b[:, None] + np.arange(5), 5 * cs.a[:, None] + np.arange(5)]).ravel()
-    vals = np.hstack([wb, wa]).ravel()
-    n_dof = 5 * patch.n_scales
-    if cs.planes is not None and cs.planes.count:
-        on = np.flatnonzero(cs.side != 0)
-        j, s = cs.plane[on], cs.side[on].astype(float)
-        x = np.where((cs.side[on] > 0)[:, None], cs.xb[on], cs.xa[on])
-        lever = np.einsum("mki,mk->mi", cs.planes.basis[j], x - cs.planes.point[j])
-        extra = np.hstack([s[:, None] * lever, -s[:, None]])
-        rows = np.r_[rows, np.repeat(on, 3)]
-        cols = np.r_[cols, (n_dof + 3 * j[:, None] + np.arange(3)).ravel()]
-        vals = np.r_[vals, extra.ravel()]
-    J = sp.csr_matrix((vals, (rows, cols)), shape=(cs.m, n_dof + cs.n_extra))
-    J.eliminate_zeros()  # a plane row's other-scale block
-    return J
-
-
-def contact_forces(cs: ContactSet, lam: Array) -> Array:
-    """Generalised contact forces ``(n, 5)`` of multipliers ``lam`` (m,), eq. (18): J' lam.
-
-    Row i holds the force on scale i and the work-conjugate of its rotation increments,
-    T_i' (sum of r x F), at the configuration the set was detected at.
-    """
-    lam = np.asarray(lam, dtype=float)
-    if lam.shape != (cs.m,):
-        raise InvalidDesign("lam", lam.shape, f"shape ({cs.m},)")
-    wb, wa = _dof_rows(cs, cs.q, cs.centre)
-    out = np.zeros((cs.n_scales, 5))
-    np.add.at(out, cs.b, lam[:, None] * wb)
-    np.add.at(out, cs.a, lam[:, None] * wa)
-    return out

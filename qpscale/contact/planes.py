@@ -16,9 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .contact_sat import SAT, World
-from .geometry import Array
-from .mirror import Mirror
+from ..geometry import Array
+from .placement import World
+from .separation import SAT
+from .symmetry import Mirror
 
 # Vertex of the piece facing the plane's positive side (b) and of the one behind it (a).
 SIDE_B, SIDE_A = 1, -1

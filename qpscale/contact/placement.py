@@ -1,9 +1,8 @@
-"""Placed convex pieces of the scales and the separating-axis test between them.
+"""Convex pieces of the scales: their body-frame geometry and their placement in a configuration.
 
-Implements formulations/contact.md sections 1-2, eqs. (1)-(7): the exact rigid placement
-x = c + R(phi) X of every convex piece, and the signed separation of two convex polyhedra as
-the largest separation over the face normals of both and the cross products of their edge
-directions.  Everything is vectorised over all piece pairs of a patch at once.
+Implements formulations/contact.md section 1, eq. (1): the exact rigid placement x = c + R(phi) X
+of every convex piece of every scale (``patch.convex_prisms``), vectorised over the whole patch.
+The separating-axis test between placed pieces is in :mod:`qpscale.contact.separation`.
 """
 
 from __future__ import annotations
@@ -13,12 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import Array
-from .geometry import rotation_matrices as rotations
-from .tiling import Patch
-
-# Edge pairs whose unit directions have |d_a x d_b| below this (sine of their angle) give no axis.
-PARALLEL_SIN = 1e-6
+from ..geometry import Array
+from ..geometry import rotation_matrices as rotations
+from ..tiling import Patch
 
 _CACHE: dict[int, tuple[weakref.ref, Bodies]] = {}
 
@@ -151,67 +147,3 @@ def place(patch: Patch, q: Array) -> World:
     normals = np.einsum("ijk,ipvk->ipvj", R, b.normals)
     dirs = np.einsum("ijk,ipvk->ipvj", R, b.dirs)
     return World(centre, R, verts, normals, dirs)
-
-
-@dataclass(frozen=True)
-class SAT:
-    """Separations of every piece pair (a, pa) - (b, pb) along every candidate axis.
-
-    Attributes
-    ----------
-    a, pa, b, pb : ndarray (P,) of int
-        Scale and piece indices of each piece pair.
-    face_a : ndarray (P, nf)
-        Separation along the outward normals of a's faces (axis from a to b), eq. (3).
-    face_b : ndarray (P, nf)
-        Separation along the outward normals of b's faces (axis from a to b is minus that normal).
-    edge : ndarray (P, nc, nc)
-        Separation along the edge-pair axes (-inf for near-parallel edges), eq. (4).
-    edge_axis : ndarray (P, nc, nc, 3)
-        Those axes as unit vectors oriented from a to b.
-    sep : ndarray (P,)
-        Signed separation, eq. (5): positive apart, minus the overlap depth if overlapping.
-    """
-
-    a: np.ndarray
-    pa: np.ndarray
-    b: np.ndarray
-    pb: np.ndarray
-    face_a: Array
-    face_b: Array
-    edge: Array
-    edge_axis: Array
-    sep: Array
-
-
-def piece_pairs(world: World, pairs: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Expand scale pairs ``(S, 2)`` into every combination of their convex pieces."""
-    n_p = world.verts.shape[1]
-    pa, pb = np.meshgrid(np.arange(n_p), np.arange(n_p), indexing="ij")
-    a = np.repeat(pairs[:, 0], n_p * n_p)
-    b = np.repeat(pairs[:, 1], n_p * n_p)
-    return a, np.tile(pa.ravel(), len(pairs)), b, np.tile(pb.ravel(), len(pairs))
-
-
-def separate(world: World, pairs: np.ndarray) -> SAT:
-    """Separating-axis test over all piece pairs of the scale pairs ``(S, 2)``."""
-    a, pa, b, pb = piece_pairs(world, pairs)
-    VA, VB = world.verts[a, pa], world.verts[b, pb]
-    NA, NB = world.normals[a, pa], world.normals[b, pb]
-    pAA, pAB = np.einsum("pfk,pvk->pfv", NA, VA), np.einsum("pfk,pvk->pfv", NA, VB)
-    face_a = pAB.min(axis=2) - pAA.max(axis=2)
-    pBA, pBB = np.einsum("pfk,pvk->pfv", NB, VA), np.einsum("pfk,pvk->pfv", NB, VB)
-    face_b = pBA.min(axis=2) - pBB.max(axis=2)
-    U = np.cross(world.dirs[a, pa][:, :, None, :], world.dirs[b, pb][:, None, :, :])
-    norm = np.linalg.norm(U, axis=-1)
-    valid = norm > PARALLEL_SIN
-    U = U / np.where(valid, norm, 1.0)[..., None]
-    uA, uB = np.einsum("pijk,pvk->pijv", U, VA), np.einsum("pijk,pvk->pijv", U, VB)
-    s_plus = uB.min(axis=3) - uA.max(axis=3)
-    s_minus = uA.min(axis=3) - uB.max(axis=3)
-    sign = np.where(s_plus >= s_minus, 1.0, -1.0)
-    edge = np.where(valid, np.maximum(s_plus, s_minus), -np.inf)
-    best = np.maximum(
-        np.maximum(face_a.max(axis=1), face_b.max(axis=1)), edge.reshape(len(a), -1).max(axis=1)
-    )
-    return SAT(a, pa, b, pb, face_a, face_b, edge, U * sign[..., None], best)

@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .contact_sat import SAT, Bodies, World
-from .geometry import Array
+from ..geometry import Array
+from .placement import Bodies, World
+from .separation import SAT
 
 # Point kinds (ContactSet.kind); formulations/contact.md, section 3.4.
 VERTEX_FACE, CROSSING, EDGE_EDGE, FACE_FACE, SAMPLE, VERTEX_PLANE = range(6)

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .contact_sat import bodies_of
-from .geometry import Array
-from .tiling import Patch
+from ..geometry import Array
+from ..tiling import Patch
+from .placement import bodies_of
 
 # Vertices of a piece and of its image must coincide to this, in L.
 _MATCH_TOL = 1e-6
