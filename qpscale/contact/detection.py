@@ -237,7 +237,7 @@ def detect_contacts(
     >>> from qpscale import Design
     >>> p = Design(rings=1).patch()
     >>> cs = detect_contacts(p, np.zeros((p.n_scales, 5)))
-    >>> bool(np.allclose(cs.gap, 0.005))
+    >>> bool(np.allclose(cs.gap, 0.0025))  # vertices to the half-way planes of the 0.005 L gaps
     True
     """
     settings = settings or ContactSettings()
