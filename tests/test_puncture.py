@@ -374,12 +374,13 @@ def test_a_step_that_gains_energy_is_flagged_like_one_that_releases_it():
     # a step of 1.4e-5 L to 150 times the stored energy) must be bisected like a release.
     import scipy.sparse as sp
 
-    from qpscale.experiments.puncture import SNAP_WORK, _load_point, _Path
+    from qpscale.continuation import SNAP_WORK
+    from qpscale.experiments.puncture import _load_point, puncture_path
     from qpscale.increment import Equilibrium
 
     setup = PunctureSetup(design=Design(rings=0))
     patch = setup.design.patch()
-    path = _Path(setup, patch, sp.identity(5), _load_point(patch, (0.5, 0.5)))
+    path = puncture_path(setup, patch, sp.identity(5), _load_point(patch, (0.5, 0.5)))
 
     def state(delta, F, energy):
         q = np.zeros((1, 5))
