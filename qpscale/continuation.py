@@ -19,15 +19,16 @@ A :class:`Path` is given
 
 and records what happens on it as the typed events of :mod:`qpscale.events` in ``Path.events``:
 ``Rescue`` (the level's own and the path's ``halve_step`` / ``plain_iteration``),
-``ContactChange``, ``Snap``, ``Branch`` and ``Failure``.  Which loading it is (the load point, the model, the
+``ContactChange``, ``Snap``, ``Branch`` and ``Failure``; what its stability probe found over the
+whole path is a :class:`BranchRecord`.  Which loading it is (the load point, the model, the
 symmetry held) is the caller's: ``qpscale.experiments.puncture`` builds the puncture test's paths.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
-from typing import Protocol
+from dataclasses import dataclass, fields, replace
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -219,6 +220,56 @@ class PathSettings:
     solver: str
     check: bool = False
     conservative: bool = True
+
+
+@dataclass(frozen=True)
+class BranchRecord:
+    """What the stability probe found on the path of one load point (sec. 4).
+
+    Attributes
+    ----------
+    check : str
+        ``second variation`` or ``off``.
+    mirror : bool or None
+        True when the load point lies on a mirror line and the path was first held symmetric.
+    branched : bool
+        A confirmed loss of stability was left along its mode.
+    delta_branch : float, tuple of two floats, or None
+        Depth of the first branch point; on a held path the bracket of its located bifurcation.
+    min_eigenvalue : float or None
+        Smallest eigenvalue of the second variation at a held path's bifurcation.
+    followed : str or None
+        The branch the path took: ``lower-energy side`` or ``asymmetric``.
+    asymmetry_at_failure : float or None
+        Largest DOF difference between the failure state and its mirror image (held paths).
+    """
+
+    check: str
+    mirror: bool | None = None
+    branched: bool = False
+    delta_branch: float | tuple[float, float] | None = None
+    min_eigenvalue: float | None = None
+    followed: str | None = None
+    asymmetry_at_failure: float | None = None
+
+    @classmethod
+    def of_events(cls, events: list[Event], check: bool) -> BranchRecord:
+        """The record of a path held by no symmetry: its first confirmed ``Branch`` event."""
+        branches = [e for e in events if isinstance(e, Branch) and e.confirmed]
+        record = cls(check="second variation" if check else "off", branched=bool(branches))
+        if branches:
+            record = replace(record, delta_branch=branches[0].delta, followed="lower-energy side")
+        return record
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of the command line's ``branch`` (docs/cli.md): the fields that are
+        set, in the order above, a bracket as a list."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is not None:
+                out[f.name] = list(value) if isinstance(value, tuple) else value
+        return out
 
 
 class Bifurcation(Exception):

@@ -14,7 +14,6 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -22,6 +21,7 @@ import scipy.sparse as sp
 from ..contact import ContactSettings
 from ..continuation import (
     Bifurcation,
+    BranchRecord,
     LevelSolver,
     Path,
     PathSettings,
@@ -31,7 +31,7 @@ from ..continuation import (
     unloaded,
 )
 from ..errors import InvalidDesign
-from ..events import Branch, Event
+from ..events import Event
 from ..geometry import tilt
 from ..increment import Equilibrium, LoadPoint, SQPSettings
 from ..mirror import Mirror, map_dofs
@@ -124,6 +124,20 @@ class PunctureSetup:
         return self.interaction != "substrate" and self.design.rings > 0
 
 
+@dataclass(frozen=True)
+class Candidate:
+    """One load point tried in the worst-case search (sec. 5): its F_c* and what its path's
+    stability probe found."""
+
+    load_point: tuple[float, float]
+    Fc_star: float
+    branch: BranchRecord
+
+    def to_dict(self) -> dict[str, object]:
+        """The JSON object of the command line's ``candidates`` list (docs/cli.md)."""
+        return {"load_point": list(self.load_point), "Fc_star": self.Fc_star, "branch": self.branch.to_dict()}
+
+
 @dataclass
 class PunctureResult:
     """One puncture path up to the failure tilt.
@@ -141,8 +155,11 @@ class PunctureResult:
     events : list of Event
         Located events (``qpscale.events``): contact changes, snaps, branches, the rescues that
         fired and the failure, each with its depth.
-    branch : dict
-        What the stability probe found (``branched``, ``delta``, ``followed``).
+    branch : BranchRecord
+        What the stability probe found on the chosen load point's path (``branched``,
+        ``delta_branch``, ``followed``).
+    candidates : list of Candidate
+        Every load point tried, with its F_c* and its branch record.
     """
 
     setup: PunctureSetup
@@ -151,10 +168,10 @@ class PunctureResult:
     load_point: np.ndarray
     states: list[Equilibrium]
     events: list[Event]
-    branch: dict
+    branch: BranchRecord
     wall_s: float
     qp_solves: int
-    candidates: list[dict] = field(default_factory=list)
+    candidates: list[Candidate] = field(default_factory=list)
 
     @property
     def w_star(self) -> np.ndarray:
@@ -234,7 +251,7 @@ def puncture_path(
 
 def _one_point(
     setup: PunctureSetup, patch: Patch, K: sp.csc_matrix, xy: np.ndarray
-) -> tuple[list[Equilibrium], list[Event], int, dict]:
+) -> tuple[list[Equilibrium], list[Event], int, BranchRecord]:
     """The path of one load point and what its stability check found (sec. 4)."""
     load = _load_point(patch, xy)
     check = setup.probe and _checkable(setup)
@@ -242,42 +259,36 @@ def _one_point(
     if mirror is None:
         path = puncture_path(setup, patch, K, load, check=check)
         states = path.run()
-        branches = [e for e in path.events if isinstance(e, Branch) and e.confirmed]
-        info: dict[str, Any] = {"check": "second variation" if check else "off", "branched": bool(branches)}
-        if branches:
-            info.update({"delta_branch": branches[0].delta, "followed": "lower-energy side"})
-        return states, path.events, path.solves, info
+        return states, path.events, path.solves, BranchRecord.of_events(path.events, check)
     return _symmetric_point(setup, patch, K, load, xy, mirror)
 
 
 def _symmetric_point(
     setup: PunctureSetup, patch: Patch, K: sp.csc_matrix, load: LoadPoint, xy: np.ndarray, mirror: tuple
-) -> tuple[list[Equilibrium], list[Event], int, dict]:
+) -> tuple[list[Equilibrium], list[Event], int, BranchRecord]:
     """A load point on a mirror line: the symmetric branch, held by constraints, until a state
     fails the second-variation test (located by the path's bisection); the path then continues,
     unconstrained, from the state pushed along the unstable mode to a fixed side."""
     M, perm = mirror
     sym = puncture_path(setup, patch, K, load, mirror=Mirror.of(patch, M, perm), check=True)
-    info: dict = {"check": "second variation", "mirror": True}
     try:
         states = sym.run()
-        info["branched"] = False
-        return states, sym.events, sym.solves, info
+        return states, sym.events, sym.solves, BranchRecord("second variation", mirror=True)
     except Bifurcation as exc:
         lost = exc
     lo, hi, sv = lost.before[-1], lost.state, lost.stability
     free = puncture_path(setup, patch, K, load, check=True)
     states = free.switch(lost, sv.mode * _side(sv.mode[load.scale], M))
-    info.update(
-        {
-            "branched": True,
-            "delta_branch": [lo.delta, hi.delta],
-            "min_eigenvalue": sv.min_eigenvalue,
-            "followed": "asymmetric",
-            "asymmetry_at_failure": _asymmetry(states[-1].q, M, perm),
-        }
+    record = BranchRecord(
+        "second variation",
+        mirror=True,
+        branched=True,
+        delta_branch=(lo.delta, hi.delta),
+        min_eigenvalue=sv.min_eigenvalue,
+        followed="asymmetric",
+        asymmetry_at_failure=_asymmetry(states[-1].q, M, perm),
     )
-    return states, sym.events + free.events, sym.solves + free.solves, info
+    return states, sym.events + free.events, sym.solves + free.solves, record
 
 
 def _side(mode: np.ndarray, M: np.ndarray) -> float:
@@ -314,16 +325,17 @@ def _run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None) 
     else:
         verts = top_vertices(patch)
         points = [verts[orbit[0]] for orbit in vertex_orbits(patch, verts)]
-    candidates, best = [], None
+    candidates: list[Candidate] = []
+    best = None
     solves = 0
     for xy in points:
         if progress:
             progress(f"load point ({xy[0]:.3f}, {xy[1]:.3f})")
-        states, events, n, info = _one_point(setup, patch, K, xy)
+        states, events, n, record = _one_point(setup, patch, K, xy)
         solves += n
-        candidates.append({"load_point": xy.tolist(), "Fc_star": states[-1].F, "branch": info})
+        candidates.append(Candidate((float(xy[0]), float(xy[1])), states[-1].F, record))
         if best is None or states[-1].F < best[0][-1].F:
-            best = (states, events, xy, info)
+            best = (states, events, xy, record)
     assert best is not None
     states, events, xy, branch = best
     return PunctureResult(
