@@ -524,9 +524,9 @@ def puncture(
             "F_star": result.F_star.tolist(),
             "tilt_deg": result.tilt_deg.tolist(),
         },
-        "candidates": [c.to_dict() if hasattr(c, "to_dict") else c for c in result.candidates],
-        "branch": result.branch.to_dict() if hasattr(result.branch, "to_dict") else result.branch,
-        "events": [e.to_dict() if hasattr(e, "to_dict") else e for e in result.events],
+        "candidates": [c.to_dict() for c in result.candidates],
+        "branch": result.branch.to_dict(),
+        "events": [e.to_dict() for e in result.events],
     }
     if modulus is not None:
         from .units import force_from_star

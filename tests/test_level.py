@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-import qpscale.experiments.puncture as puncture
+import qpscale.continuation as continuation
 import qpscale.solvers as solvers
 from qpscale import Design
 from qpscale.cli import app
@@ -183,7 +183,7 @@ def test_plain_iteration_fires_when_no_step_converges_and_the_path_keeps_Fc(alon
     setup, clean = alone
     faults = Faults(every=True)
     faults.active = False
-    original = puncture.solve_level
+    original = continuation.solve_level
     levels = {"n": 0}
 
     def level_with_faults(*args, **kw):
@@ -198,15 +198,15 @@ def test_plain_iteration_fires_when_no_step_converges_and_the_path_keeps_Fc(alon
 
     events: list = []
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
-    monkeypatch.setattr(puncture, "solve_level", level_with_faults)
-    original_run = puncture._Path.run
+    monkeypatch.setattr(continuation, "solve_level", level_with_faults)
+    original_run = continuation.Path.run
 
     def run(self, *a, **kw):
         nonlocal events
         events = self.events
         return original_run(self, *a, **kw)
 
-    monkeypatch.setattr(puncture._Path, "run", run)
+    monkeypatch.setattr(continuation.Path, "run", run)
     hurt = run_puncture(setup)
     kinds = [e.rescue for e in hurt.events if e.kind == "rescue"]
     assert kinds.count("plain_iteration") == 1 and kinds.count("halve_step") >= 10

@@ -8,7 +8,8 @@ import pytest
 from qpscale import Design
 from qpscale.contact import detect_contacts
 from qpscale.contact.symmetry import Mirror, map_dofs
-from qpscale.experiments.puncture import PunctureSetup, _load_point, _Path, _predict, build_model
+from qpscale.continuation import predict
+from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, puncture_path
 from qpscale.experiments.symmetry import mirror_through, patch_symmetries
 from qpscale.increment import SQPSettings, solve_equilibrium
 
@@ -93,10 +94,10 @@ def test_a_held_state_is_an_equilibrium_of_the_free_problem(corner):
     # The depths lie before the branch point (0.0845): the held state is also stable there.
     setup, patch, K, mirror = corner
     load = _load_point(patch, CORNER)
-    path = _Path(setup, patch, K, load, mirror=mirror)
+    path = puncture_path(setup, patch, K, load, mirror=mirror)
     states = [path.origin()]
     for delta in (0.02, 0.04, 0.06, 0.08):
-        states.append(path.solve(_predict(states, delta), delta, len(states)).unwrap())
+        states.append(path.solve(predict(states, delta), delta, len(states)).unwrap())
     for held in states[1:]:
         assert np.max(np.abs(held.q - map_dofs(held.q, mirror.M, mirror.perm))) < 1e-12
         free = solve_equilibrium(

@@ -78,14 +78,14 @@ def test_backends_agree_on_Fc():
     solvers = ["clarabel", "cvxpy"] + [s for s in available_solvers() if s == "qpsolvers:piqp"]
     values = {s: _run(load_point=(1.0, 1.0), probe=True, sqp=SQPSettings(solver=s)) for s in solvers}
     ref = values["clarabel"]
-    assert ref.branch["branched"]
+    assert ref.branch.branched
     for solver, result in values.items():
         assert result.Fc_star == pytest.approx(ref.Fc_star, rel=1e-6), solver
         # The branch point is located where the smallest eigenvalue crosses -1e-6; on the held
         # branch (planes held symmetric) the eigenvalue is smooth and falls at ~3e-3 per L, so an
         # eigenvalue noise of 1e-9 (FD Hessian, states to |dq| <= 1e-8) moves the located depth
         # by ~3e-7 L: 1e-5 relative (measured 1.9e-7 between Clarabel and PIQP).
-        assert result.branch["delta_branch"][0] == pytest.approx(ref.branch["delta_branch"][0], rel=1e-5)
+        assert result.branch.delta_branch[0] == pytest.approx(ref.branch.delta_branch[0], rel=1e-5)
 
 
 def test_osqp_is_refused_on_the_plane_formulation_not_switched():
@@ -146,8 +146,8 @@ def test_corner_load_is_symmetric_about_the_diagonal_up_to_the_branch():
     corner = np.array([1.0, 1.0])
     M, perm = mirror_through(patch, corner)
     result = _run(load_point=(1.0, 1.0), probe=True)
-    assert result.branch["branched"]
-    lo, hi = result.branch["delta_branch"]
+    assert result.branch.branched
+    lo, hi = result.branch.delta_branch
     assert 0.0 < lo < hi < result.states[-1].delta
     before = [s for s in result.states if s.delta <= lo]
     assert len(before) >= 3
@@ -240,7 +240,7 @@ def test_Fc_independent_of_increment_size():
     # 16 and 30 increments).
     a = _run(increments=6, load_point=EDGE, probe=True)
     b = _run(increments=30, load_point=EDGE, probe=True)
-    assert not a.branch["branched"] and not b.branch["branched"]
+    assert not a.branch.branched and not b.branch.branched
     assert a.Fc_star == pytest.approx(b.Fc_star, rel=1e-5)
 
 
@@ -253,8 +253,8 @@ def test_corner_branch_point_independent_of_increment_size():
     # 6, 16, 30 and 40 increments; 0.3 % before the planes were held).
     a = _run(increments=16, load_point=(1.0, 1.0), probe=True)
     b = _run(increments=40, load_point=(1.0, 1.0), probe=True)
-    assert a.branch["branched"] and b.branch["branched"]
-    assert a.branch["delta_branch"][0] == pytest.approx(b.branch["delta_branch"][0], rel=1e-5)
+    assert a.branch.branched and b.branch.branched
+    assert a.branch.delta_branch[0] == pytest.approx(b.branch.delta_branch[0], rel=1e-5)
     assert a.Fc_star == pytest.approx(b.Fc_star, rel=1e-6)
 
 
@@ -265,8 +265,8 @@ def test_default_scene_independent_of_increment_size():
     # the planes were held, 1.3100024 and 1.3110477 from different step sequences).
     a = run_puncture(PunctureSetup(increments=12))
     b = run_puncture(PunctureSetup(increments=40))
-    assert a.branch["branched"] and b.branch["branched"]
-    assert a.branch["delta_branch"][0] == pytest.approx(b.branch["delta_branch"][0], rel=1e-5)
+    assert a.branch.branched and b.branch.branched
+    assert a.branch.delta_branch[0] == pytest.approx(b.branch.delta_branch[0], rel=1e-5)
     assert a.Fc_star == pytest.approx(b.Fc_star, rel=1e-6)
 
 
@@ -374,12 +374,13 @@ def test_a_step_that_gains_energy_is_flagged_like_one_that_releases_it():
     # a step of 1.4e-5 L to 150 times the stored energy) must be bisected like a release.
     import scipy.sparse as sp
 
-    from qpscale.experiments.puncture import SNAP_WORK, _load_point, _Path
+    from qpscale.continuation import SNAP_WORK
+    from qpscale.experiments.puncture import _load_point, puncture_path
     from qpscale.increment import Equilibrium
 
     setup = PunctureSetup(design=Design(rings=0))
     patch = setup.design.patch()
-    path = _Path(setup, patch, sp.identity(5), _load_point(patch, (0.5, 0.5)))
+    path = puncture_path(setup, patch, sp.identity(5), _load_point(patch, (0.5, 0.5)))
 
     def state(delta, F, energy):
         q = np.zeros((1, 5))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import qpscale.continuation as continuation
 import qpscale.experiments.puncture as puncture
 from qpscale import Design
 from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture
@@ -31,23 +32,23 @@ TOLERANCES = {
     # whose negative eigenvalue is simple (measured 1.4e-10).
     "mode": 1e-7,
 }
-PATH_TOL = puncture.STABILITY_TOL
+PATH_TOL = continuation.STABILITY_TOL
 SETUP = PunctureSetup(design=Design(rings=1), load_point=(1.0, 1.0))
 
 
 @pytest.fixture(scope="module")
 def corner_states():
     """Every state the 3x3 square's corner-loaded path tested (symmetric branch, the branch point's
-    bisection, the asymmetric branch after it): the inputs of ``_Path.stability`` as recorded."""
+    bisection, the asymmetric branch after it): the inputs of ``Path.stability`` as recorded."""
     seen = []
-    real = puncture._Path.stability
+    real = continuation.Path.stability
 
     def record(self, eq):
         seen.append(eq)
         return real(self, eq)
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(puncture._Path, "stability", record)
+        mp.setattr(continuation.Path, "stability", record)
         run_puncture(SETUP)
     patch, K = build_model(SETUP)
     load = puncture._load_point(patch, SETUP.load_point)

@@ -1,0 +1,694 @@
+"""Continuation of the equilibria of one loading, from the unloaded state to failure.
+
+Implements formulations/puncture.md sec. 2 (the path: first step from the linear response, the
+secant predictor, the step rule (S), the energy balance (R) that locates jumps, the curvature cap,
+the landing by the plain iteration), sec. 3 (the failure state: tilt = phi_c located by Illinois
+regula falsi, or failure by a snap) and sec. 4 (the second-variation test of every state with
+qpscale/stability.py, the location of a loss of stability, branch switching along the unstable
+mode, and the held-symmetric branch left at a bifurcation).
+
+A :class:`Path` is given
+
+(a) a level solver (:class:`LevelSolver`): the converged state at a depth from a start state, or
+    why there is none (``increment.solve_level`` through :class:`SQPLevels`, or the penalty
+    baseline through :class:`PenaltyLevels`);
+(b) the functions of a state it reads (:class:`StateFunctions`): stored energy, how much the
+    energy moves per unit of error in q, tilt, stability;
+(c) what it is asked for (:class:`PathSettings`): the failure tilt, the target number of
+    increments, whether states are tested and jumps located;
+
+and records what happens on it as the typed events of :mod:`qpscale.events` in ``Path.events``:
+``Rescue`` (the level's own and the path's ``halve_step`` / ``plain_iteration``),
+``ContactChange``, ``Snap``, ``Branch`` and ``Failure``; what its stability probe found over the
+whole path is a :class:`BranchRecord`.  Which loading it is (the load point, the model, the
+symmetry held) is the caller's: ``qpscale.experiments.puncture`` builds the puncture test's paths.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, fields, replace
+from typing import Any, Protocol
+
+import numpy as np
+import scipy.sparse as sp
+
+from .contact import ContactSettings
+from .contact.symmetry import Mirror
+from .errors import SolverFailure
+from .events import Branch, ContactChange, Event, Failure, Rescue, Snap
+from .geometry import tilt
+from .increment import STEP_TOL, Equilibrium, LevelOutcome, LoadPoint, SQPSettings, solve_level
+from .penalty import PenaltySettings, penalty_level
+from .stability import Stability, second_variation
+from .tiling import Patch
+
+# Size of the push along an unstable mode before the path is continued on the branch, in L.
+BRANCH_PUSH = 1e-4
+# A step releasing more than this fraction of its work is bisected as a possible jump between
+# equilibria, and a jump surviving down to SNAP_RESOLUTION * delta is a snap (sec. 2).
+SNAP_WORK = 1e-3
+# Smallest eigenvalue of the second variation (relative to K's largest diagonal) still counted as
+# stable: the Hessian is exact (the state's accuracy moves mu by ~1e-7), and a pitchfork's eigenvalue falls
+# through zero at a slope of order 1e-3 per L of depth, so the branch point moves by ~1e-3 L.
+STABILITY_TOL = 1e-6
+# Iterations allowed to the landing of a jump: the plain iteration leaves an unstable state at the
+# rate of its negative eigenvalue, slowly near the branch point.
+LANDING_MAX_ITER = 3000
+SNAP_RESOLUTION = 1e-7
+# A converged state lies within this many step tolerances of the exact one (the sequential QP
+# stops at |dq| <= step_tol and contracts at a rate of 0.5-0.9): the energy balance's noise floor.
+STATE_ERROR = 10.0
+# Target error of the secant predictor, in L or rad (``_growth``): the step is sized by it.
+PREDICTOR_ERROR = 1e-3
+# A level that needed more sequential-QP iterations than this halves the next step.
+HARD_LEVEL = 30
+# The failure state's tilt must lie within this fraction of phi_c (issue #5: F_c at phi_c to 1e-6).
+TILT_LOCATED = 1e-6
+
+
+class LevelSolver(Protocol):
+    """One load level: the converged state at depth ``delta`` started from ``start``.
+
+    ``index`` is the increment (for the records; -1 for a push off a branch); ``descent`` asks
+    for the plain fixed-point iteration, an energy descent in the K metric (the landing of a jump,
+    formulations/puncture.md sec. 2).  The outcome carries the state or the failure, and the
+    rescues that fired on the way.
+    """
+
+    def __call__(
+        self, start: Equilibrium, delta: float, index: int, descent: bool = False
+    ) -> LevelOutcome: ...
+
+
+@dataclass(frozen=True)
+class SQPLevels:
+    """The sequential-QP level (``increment.solve_level``) under the path's settings.
+
+    ``mirror`` holds the level on the symmetric branch of that reflection (configuration and
+    separating planes, formulations/puncture.md sec. 4).
+    """
+
+    patch: Patch
+    K: sp.csc_matrix
+    load: LoadPoint
+    contact: ContactSettings | None
+    settings: SQPSettings
+    mirror: Mirror | None = None
+
+    def __call__(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
+        return solve_level(
+            self.patch,
+            self.K,
+            start.q,
+            self.load,
+            delta,
+            self.contact,
+            self.sqp(descent),
+            increment=index,
+            previous=start.contacts,
+            mirror=self.mirror,
+        )
+
+    def sqp(self, descent: bool = False) -> SQPSettings:
+        """The SQP settings of a level: the plain iteration for a landing (``descent``), and no
+        plane damping on a held-symmetry path: it moves no converged state, but a fold located
+        with it depended on the step (1.4e-5 over 6-30 increments against 4e-7 without,
+        formulations/puncture.md sec. 4)."""
+        settings = self.settings
+        if self.mirror is not None:
+            settings = replace(settings, plane_damping=False)
+        if descent:
+            settings = replace(settings, anderson_depth=0, max_iter=LANDING_MAX_ITER)
+        return settings
+
+
+@dataclass(frozen=True)
+class PenaltyLevels:
+    """The penalty baseline's level (``penalty.penalty_level``, formulations/penalty.md); it has
+    no plain iteration of its own, so a landing is solved like any level."""
+
+    patch: Patch
+    K: sp.csc_matrix
+    load: LoadPoint
+    contact: ContactSettings | None
+    settings: PenaltySettings
+
+    def __call__(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
+        return penalty_level(
+            self.patch,
+            self.K,
+            start.q,
+            self.load,
+            delta,
+            self.contact,
+            self.settings,
+            increment=index,
+            previous=start.contacts,
+        )
+
+
+@dataclass(frozen=True)
+class StateFunctions:
+    """The functions of a converged state that the path reads.
+
+    Attributes
+    ----------
+    energy : callable
+        Stored energy of a state (F* L): the energy balance (R) and the branch of lower energy.
+    force_norm : callable
+        |dE/dq|_1, how much the stored energy moves per unit of error in q: the noise floor of (R).
+    tilt : callable
+        Tilt of the loaded face (rad): the failure criterion, tilt = phi_c (sec. 3).
+    stability : callable
+        The second-variation test of a state (sec. 4).
+    """
+
+    energy: Callable[[Equilibrium], float]
+    force_norm: Callable[[Equilibrium], float]
+    tilt: Callable[[Equilibrium], float]
+    stability: Callable[[Equilibrium], Stability]
+
+    @classmethod
+    def of_point_load(cls, patch: Patch, K: sp.csc_matrix, load: LoadPoint) -> StateFunctions:
+        """The quadratic substrate energy 1/2 q'Kq, the tilt of the loaded scale's top face
+        (geometry.md eq. 3) and the second variation of ``stability.second_variation`` with the
+        path's tolerance ``STABILITY_TOL``."""
+
+        def energy(eq: Equilibrium) -> float:
+            x = eq.q.ravel()
+            return 0.5 * float(x @ (K @ x))
+
+        def force_norm(eq: Equilibrium) -> float:
+            return float(np.abs(K @ eq.q.ravel()).sum())
+
+        def tilt_of(eq: Equilibrium) -> float:
+            return tilt(eq.q[load.scale, 3:5])
+
+        def stability(eq: Equilibrium) -> Stability:
+            return second_variation(patch, K, eq, load, tol=STABILITY_TOL)
+
+        return cls(energy, force_norm, tilt_of, stability)
+
+
+@dataclass(frozen=True)
+class PathSettings:
+    """What one path is asked for.
+
+    Parameters
+    ----------
+    phi_c_deg : float
+        Failure tilt, degrees (sec. 3).
+    increments : int
+        Target number of increments up to failure: the first step and the step's upper bound
+        are sized by it (sec. 2).
+    max_increments : int
+        States allowed before the path gives up (``failure tilt not reached``).
+    solver : str
+        Name of the level's backend, for the failures the path reports.
+    check : bool
+        Test every converged state by the second variation, locate and leave instabilities (sec. 4).
+    conservative : bool
+        The energy balance (R) holds (exact frictionless contact: the plane rows, or none), so
+        jumps are located; the feature rows' sticky axis and the penalty dissipate ~1e-3 of the
+        work (sec. 2).
+    """
+
+    phi_c_deg: float
+    increments: int
+    max_increments: int
+    solver: str
+    check: bool = False
+    conservative: bool = True
+
+
+@dataclass(frozen=True)
+class BranchRecord:
+    """What the stability probe found on the path of one load point (sec. 4).
+
+    Attributes
+    ----------
+    check : str
+        ``second variation`` or ``off``.
+    mirror : bool or None
+        True when the load point lies on a mirror line and the path was first held symmetric.
+    branched : bool
+        A confirmed loss of stability was left along its mode.
+    delta_branch : float, tuple of two floats, or None
+        Depth of the first branch point; on a held path the bracket of its located bifurcation.
+    min_eigenvalue : float or None
+        Smallest eigenvalue of the second variation at a held path's bifurcation.
+    followed : str or None
+        The branch the path took: ``lower-energy side`` or ``asymmetric``.
+    asymmetry_at_failure : float or None
+        Largest DOF difference between the failure state and its mirror image (held paths).
+    """
+
+    check: str
+    mirror: bool | None = None
+    branched: bool = False
+    delta_branch: float | tuple[float, float] | None = None
+    min_eigenvalue: float | None = None
+    followed: str | None = None
+    asymmetry_at_failure: float | None = None
+
+    @classmethod
+    def of_events(cls, events: list[Event], check: bool) -> BranchRecord:
+        """The record of a path held by no symmetry: its first confirmed ``Branch`` event."""
+        branches = [e for e in events if isinstance(e, Branch) and e.confirmed]
+        record = cls(check="second variation" if check else "off", branched=bool(branches))
+        if branches:
+            record = replace(record, delta_branch=branches[0].delta, followed="lower-energy side")
+        return record
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of the command line's ``branch`` (docs/cli.md): the fields that are
+        set, in the order above, a bracket as a list."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is not None:
+                out[f.name] = list(value) if isinstance(value, tuple) else value
+        return out
+
+
+class Bifurcation(Exception):
+    """A held-symmetric path reached a located state whose unstable mode breaks the symmetry.
+
+    Attributes
+    ----------
+    before : list of Equilibrium
+        The held path's states up to the last stable one.
+    state : Equilibrium
+        The first unstable state, within ``SNAP_RESOLUTION`` of the last stable one.
+    stability : Stability
+        Its second variation (the mode the path leaves along).
+    step : float
+        The step the path had before the bisection, to resume with.
+    """
+
+    def __init__(
+        self, before: list[Equilibrium], state: Equilibrium, stability: Stability, step: float
+    ) -> None:
+        super().__init__("symmetric path lost stability")
+        self.before, self.state, self.stability, self.step = before, state, stability, step
+
+
+class Path:
+    """The continuation of one loading: the level solver, the functions of a state, the events.
+
+    Parameters
+    ----------
+    level : LevelSolver
+        Solves a load level from a start state.
+    functions : StateFunctions
+        Energy, its sensitivity, tilt and stability of a state.
+    settings : PathSettings
+        Failure tilt, increments, whether states are tested and jumps located.
+    origin : Equilibrium
+        The unloaded state the path starts from.
+    mirror : Mirror or None
+        The reflection the level holds the path symmetric about (the same as the level
+        solver's); a located instability whose mode breaks it raises :class:`Bifurcation`.
+
+    Attributes
+    ----------
+    events : list of Event
+        What happened on the path, in order.
+    solves : int
+        Load levels solved.
+    """
+
+    def __init__(
+        self,
+        level: LevelSolver,
+        functions: StateFunctions,
+        settings: PathSettings,
+        origin: Equilibrium,
+        mirror: Mirror | None = None,
+    ) -> None:
+        self.level, self.functions, self.settings = level, functions, settings
+        self._origin = origin
+        self.phi_c = np.deg2rad(settings.phi_c_deg)
+        self.solves = 0
+        self.events: list[Event] = []
+        self.mirror = mirror
+        self.smooth_from = 0  # first state after the last jump (the curvature cap's window)
+        self.unconfirmed = False  # an instability whose pushes found no lower energy (run)
+
+    def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
+        """The level at depth ``delta`` from ``start`` under the level's rescue policy;
+        ``descent``: by the plain fixed-point iteration, an energy descent in the K metric (the
+        landing of a jump, sec. 4).  The rescues that fired join the path's events."""
+        self.solves += 1
+        outcome = self.level(start, delta, index, descent)
+        self.events.extend(outcome.rescues)
+        return outcome
+
+    def energy(self, eq: Equilibrium) -> float:
+        """Stored energy of a state (F* L)."""
+        return self.functions.energy(eq)
+
+    def stability(self, eq: Equilibrium) -> Stability:
+        """The second-variation test of a converged state (sec. 4)."""
+        return self.functions.stability(eq)
+
+    def tilt_of(self, eq: Equilibrium) -> float:
+        """Tilt of the loaded face (rad)."""
+        return self.functions.tilt(eq)
+
+    def origin(self) -> Equilibrium:
+        """The unloaded state."""
+        return self._origin
+
+    def branch_off(self, eq: Equilibrium, sv: Stability, sides: tuple[float, ...]) -> Equilibrium:
+        """Push ``eq`` along the unstable mode (each side given), re-solve at the same depth and
+        keep the state of lowest energy (it lies on the branch the path takes)."""
+        energy = self.energy(eq)
+        best: tuple[float, Equilibrium] | None = None
+        for side in sides:
+            start = Equilibrium(
+                eq.q + side * BRANCH_PUSH * sv.mode, eq.delta, eq.F, eq.contacts, eq.lam, 0, 0.0
+            )
+            outcome = self.solve(start, eq.delta, -1, descent=True)
+            if outcome.state is None:
+                continue
+            moved = outcome.state
+            e = self.energy(moved)
+            if e < energy and (best is None or e < best[0]):
+                best = (e, moved)
+        self.events.append(Branch(eq.delta, sv.min_eigenvalue, energy - best[0] if best else 0.0))
+        return best[1] if best else eq
+
+    def breaks_symmetry(self, sv: Stability) -> bool:
+        """On a symmetric path: the unstable mode is mostly antisymmetric (a bifurcation off the
+        branch) rather than symmetric (a fold of the branch itself, crossed by a snap)."""
+        if self.mirror is None:
+            return False
+        mode = sv.mode.ravel()
+        return bool(np.linalg.norm(self.mirror.dof_rows @ mode) ** 2 > 0.5 * float(mode @ mode))
+
+    def first_step(self, origin: Equilibrium) -> float:
+        """Step from the linear response: delta at failure ~ phi_c / (d tilt / d delta)."""
+        probe = 1e-4
+        eq = self.solve(origin, probe, 0).unwrap()
+        rate = self.tilt_of(eq) / probe
+        if not rate > 0:
+            raise SolverFailure(self.settings.solver, "load does not tilt the scale", 0)
+        return self.phi_c / rate / self.settings.increments
+
+    def locate_failure(self, lo: Equilibrium, hi: Equilibrium, index: int) -> Equilibrium:
+        """Illinois regula falsi on tilt(delta) - phi_c between two converged states (sec. 3)."""
+        f_lo, f_hi = self.tilt_of(lo) - self.phi_c, self.tilt_of(hi) - self.phi_c
+        a, b, side = lo, hi, 0
+        for _ in range(60):
+            d = (a.delta * f_hi - b.delta * f_lo) / (f_hi - f_lo)
+            eq = self.solve(a, d, index).unwrap()
+            f = self.tilt_of(eq) - self.phi_c
+            if abs(f) <= 1e-12 * self.phi_c:
+                return eq
+            if abs(b.delta - a.delta) <= 1e-15 * max(1.0, b.delta):
+                # The bracket is at round-off of the depth: the SQP's accuracy (~1e-8) limits how
+                # close the tilt gets; within 1e-6 phi_c it is located (sec. 3).  A larger
+                # difference across it is a jump of the tilt, and no state lies at phi_c.
+                best = min((a, b, eq), key=lambda st: abs(self.tilt_of(st) - self.phi_c))
+                if abs(self.tilt_of(best) - self.phi_c) <= TILT_LOCATED * self.phi_c:
+                    return best
+                raise SolverFailure(
+                    self.settings.solver,
+                    "failure tilt not located",
+                    index,
+                    f"tilt jumps from {np.rad2deg(self.tilt_of(a)):.9g} to {np.rad2deg(self.tilt_of(b)):.9g}"
+                    f" deg at depth {a.delta:.10g} without a located snap",
+                )
+            if f < 0:
+                a, f_lo = eq, f
+                if side == -1:
+                    f_hi /= 2
+                side = -1
+            else:
+                b, f_hi = eq, f
+                if side == 1:
+                    f_lo /= 2
+                side = 1
+        raise SolverFailure(self.settings.solver, "failure tilt not located", index)
+
+    def released(self, a: Equilibrium, b: Equilibrium) -> float:
+        """Energy released between two states: work of the load (trapezoidal) minus the stored
+        energy's change.  On a continuous path it is the quadrature error, O(h^3) (O(h^2) at a
+        contact closing); a jump to another equilibrium releases a finite amount (sec. 2)."""
+        return _work(a, b) - (self.energy(b) - self.energy(a))
+
+    def snapped(self, a: Equilibrium, b: Equilibrium) -> bool:
+        """The step's energy balance misses by more than ``SNAP_WORK`` of its work, either way.
+
+        Relative to the work, the quadrature error falls with the step (h^2 smooth, h at a kink)
+        while a jump's |R| grows as 1/h: bisection tells them apart.  R > 0 is a release (a snap,
+        or the SQP leaping into a lower basin); R < 0 is an equilibrium holding more energy than
+        the load supplied, which no quasi-static path reaches: the SQP leapt into a higher basin
+        (seen on the 5x5 dart: a step of 1.4e-5 L to a state of 150 times the stored energy).
+
+        Below what the states can resolve nothing is flagged: a state of the high accuracy is
+        converged to ``STEP_TOL`` (1e-8) in q (within ``STATE_ERROR`` steps of it), so its stored
+        energy is known to ``STATE_ERROR STEP_TOL |K q|_1``.  The floor stays at that of the high
+        accuracy whatever the QP tolerance: scaled with a looser step test (1e-5 at ``mid``) it let
+        a real jump of the 3x3 square's contact-mode path through (F_c 2.5e-3 off).  Without the
+        floor a short step at a small load (W ~ 1e-9) was flagged on noise alone, its bisection
+        stopped each increment at a few micro-L, and the 3x3 hexagon array slanted 60 deg at
+        45 deg ended at a tilt of 0.04 deg after 400 increments (puncture.md sec. 2).
+        """
+        floor = STATE_ERROR * STEP_TOL * (self.functions.force_norm(a) + self.functions.force_norm(b))
+        return abs(self.released(a, b)) > SNAP_WORK * abs(_work(a, b)) + floor
+
+    def run(self, states: list[Equilibrium] | None = None, step: float | None = None) -> list[Equilibrium]:
+        """Step the load until the tilt reaches phi_c; continue from ``states`` if given.
+
+        A step that releases energy, or ends in a state failing the stability test, is bisected
+        (``ceiling``: the depth of the last such step) until the event is located within
+        ``SNAP_RESOLUTION``; the path then leaves its branch (the jump's landing state, or the
+        unstable state pushed along its mode), and a landing past phi_c is the failure (sec. 3-4).
+        On a symmetric path (``mirror``) a located instability whose mode breaks the symmetry
+        raises :class:`Bifurcation` instead.
+        """
+        states = list(states) if states else [self.origin()]
+        step = step if step is not None else self.first_step(states[0])
+        min_step, max_step = step * 1e-4, step * 100
+        ceiling, resume, retest = np.inf, step, False
+        while len(states) <= self.settings.max_increments:
+            last = states[-1]
+            if ceiling < np.inf:
+                step = ceiling - last.delta if retest else 0.5 * (ceiling - last.delta)
+            guess = predict(states, last.delta + step)
+            outcome = self.solve(guess, last.delta + step, len(states))
+            if outcome.state is None:
+                assert outcome.failure is not None
+                if step >= 2.0 * min_step:
+                    self.events.append(
+                        Rescue("halve_step", last.delta + step, len(states), outcome.failure.status)
+                    )
+                    if ceiling < np.inf:
+                        ceiling, retest = last.delta + step, False
+                    else:
+                        step /= 2
+                    continue
+                # No step converges, however short: the plain iteration (an energy descent from
+                # the last state, sec. 2 Landing) either follows the branch where the extrapolated
+                # one leapt or cycled, or lands past a limit point; if it fails too, so does the path.
+                eq = self.solve(last, last.delta + step, len(states), descent=True).unwrap()
+                self.events.append(Rescue("plain_iteration", eq.delta, len(states), outcome.failure.status))
+                if self.snapped(last, eq):
+                    if self.left_branch(last, eq):
+                        return states
+                    self.smooth_from = len(states)
+                ceiling, step, landed = np.inf, resume, True
+            else:
+                eq, landed = outcome.state, False
+            sv = self.stability(eq) if self.settings.check and not landed else None
+            unstable = sv is not None and not sv.stable and not self.unconfirmed
+            if sv is not None and sv.stable:
+                self.unconfirmed = False
+            if unstable or (self.settings.conservative and not landed and self.snapped(last, eq)):
+                if step > SNAP_RESOLUTION * eq.delta:
+                    if ceiling == np.inf:
+                        resume = step
+                    ceiling, retest = eq.delta, False
+                    continue
+                if unstable:
+                    assert sv is not None
+                    if self.breaks_symmetry(sv):
+                        raise Bifurcation(states, eq, sv, resume)
+                    landing = self.branch_off(eq, sv, sides=(1.0, -1.0))
+                else:
+                    landing = self.solve(last, eq.delta, len(states), descent=True).unwrap()
+                if not unstable and not self.snapped(last, landing):
+                    # The plain iteration follows the path where the extrapolated one leapt into
+                    # another basin: no jump, an ordinary step.
+                    eq, ceiling, step = landing, np.inf, resume
+                elif landing is eq:
+                    # No push along the mode lowers the energy: the negative eigenvalue is not
+                    # confirmed (it depends on how hinged planes are turned, increment.md sec. 4b),
+                    # and the path goes on without branching, as a continuous step, until a state
+                    # passes.
+                    self.unconfirmed = True
+                    at = max(i for i, e in enumerate(self.events) if isinstance(e, Branch))
+                    branch = self.events[at]
+                    assert isinstance(branch, Branch)
+                    self.events[at] = replace(branch, confirmed=False)
+                    ceiling, step = np.inf, resume
+                else:
+                    if self.left_branch(last, landing):
+                        return states
+                    eq, ceiling, step, self.smooth_from = landing, np.inf, resume, len(states)
+            elif ceiling < np.inf:
+                # Below the ceiling the path is continuous; retest the rest of the bracket.
+                if eq.delta >= ceiling:
+                    ceiling, step = np.inf, resume
+                retest = True
+            if self.tilt_of(eq) >= self.phi_c:
+                final = self.locate_failure(last, eq, len(states))
+                self.events.append(Failure("tilt", final.delta, self.settings.phi_c_deg))
+                states.append(final)
+                return states
+            self._record_contact_change(last, eq)
+            states.append(eq)
+            if ceiling == np.inf:
+                cap = _curvature_cap(states[self.smooth_from :])
+                predicted = not landed and eq is outcome.state and guess is not last
+                error = float(np.max(np.abs(eq.q - guess.q))) if predicted else None
+                g = _growth(error, eq.iterations)
+                step = min(max_step, step * g, self._remaining(states), cap)
+        raise SolverFailure(
+            self.settings.solver,
+            "failure tilt not reached",
+            len(states),
+            f"tilt {np.rad2deg(self.tilt_of(states[-1])):.3f} deg after {len(states)} increments",
+        )
+
+    def switch(self, bifurcation: Bifurcation, mode: np.ndarray) -> list[Equilibrium]:
+        """Leave a held-symmetric path at its located ``bifurcation`` and continue to failure.
+
+        The unstable state is pushed along ``mode`` (the unstable mode, its side chosen by the
+        caller) to one side only and landed by the plain iteration; a landing past phi_c is the
+        failure by a snap, otherwise the path continues from it with the step it had (sec. 4).
+        This path must hold no symmetry: the landing and what follows are free.
+        """
+        lo, hi = bifurcation.before[-1], bifurcation.state
+        sv = replace(bifurcation.stability, mode=mode)
+        on_branch = self.branch_off(hi, sv, sides=(1.0,))
+        states = list(bifurcation.before)
+        if self.left_branch(lo, on_branch):
+            return states
+        self.smooth_from = len(states)
+        return self.run(states + [on_branch], step=bifurcation.step)
+
+    def left_branch(self, last: Equilibrium, landing: Equilibrium) -> bool:
+        """Record a located jump from ``last`` to ``landing``; True if it is the failure: the
+        tilt passes phi_c within the jump, and F_c is the force carried just before it."""
+        tilts = (float(np.rad2deg(self.tilt_of(last))), float(np.rad2deg(self.tilt_of(landing))))
+        jump = Snap((last.delta, landing.delta), self.released(last, landing), tilts, (last.F, landing.F))
+        self.events.append(jump)
+        if self.tilt_of(landing) < self.phi_c:
+            return False
+        self.events.append(Failure("snap", last.delta, tilts[0], tilts[1]))
+        return True
+
+    def _remaining(self, states: list[Equilibrium]) -> float:
+        """Largest step that keeps about ``increments`` states up to the predicted failure depth."""
+        if len(states) < 2:
+            return np.inf
+        a, b = states[-2], states[-1]
+        if not b.delta > a.delta:
+            return np.inf  # a jump's landing, at the depth of the state before it
+        rate = (self.tilt_of(b) - self.tilt_of(a)) / (b.delta - a.delta)
+        if not rate > 0:
+            return np.inf
+        return 2.0 * (b.delta + (self.phi_c - self.tilt_of(b)) / rate) / self.settings.increments
+
+    def _record_contact_change(self, before: Equilibrium, after: Equilibrium) -> None:
+        changed = _active_pairs(before) ^ _active_pairs(after)
+        if changed:
+            self.events.append(ContactChange((before.delta, after.delta), tuple(sorted(changed))))
+
+
+def unloaded(n_scales: int) -> Equilibrium:
+    """The unloaded state of ``n_scales`` scales: q = 0, no force, no contact."""
+    return Equilibrium(
+        q=np.zeros((n_scales, 5)),
+        delta=0.0,
+        F=0.0,
+        contacts=None,
+        lam=np.zeros(0),
+        iterations=0,
+        penetration=0.0,
+    )
+
+
+def predict(states: list[Equilibrium], delta: float) -> Equilibrium:
+    """Secant predictor: start the next level from the states extrapolated to ``delta``.
+
+    The sequential QP converges linearly from its start; extrapolating the last two states makes
+    the first residual second order in the step (formulations/puncture.md, sec. 2).
+    """
+    last = states[-1]
+    if len(states) < 2 or last.delta <= states[-2].delta:
+        return last
+    prev = states[-2]
+    ratio = (delta - last.delta) / (last.delta - prev.delta)
+    guess = last.q + ratio * (last.q - prev.q)
+    return Equilibrium(
+        q=guess,
+        delta=delta,
+        F=last.F,
+        contacts=last.contacts,
+        lam=last.lam,
+        iterations=0,
+        penetration=last.penetration,
+    )
+
+
+def _work(a: Equilibrium, b: Equilibrium) -> float:
+    """Work of the load from state ``a`` to ``b``, trapezoidal rule (F* L)."""
+    return 0.5 * (a.F + b.F) * (b.delta - a.delta)
+
+
+def _curvature_cap(states: list[Equilibrium]) -> float:
+    """Largest step whose trapezoidal work error, h^3 |F''| / 12 from the last three states,
+    stays below half the release ``snapped`` flags (SNAP_WORK F h): a jump to another
+    equilibrium is then never hidden by the quadrature error (formulations/puncture.md sec. 2)."""
+    if len(states) < 3:
+        return np.inf
+    a, b, c = states[-3:]
+    if not a.delta < b.delta < c.delta:
+        return np.inf
+    curvature = (
+        2.0 * ((c.F - b.F) / (c.delta - b.delta) - (b.F - a.F) / (b.delta - a.delta)) / (c.delta - a.delta)
+    )
+    if curvature == 0.0:
+        return np.inf
+    return float(np.sqrt(6.0 * SNAP_WORK * abs(c.F) / abs(curvature)))
+
+
+def _growth(error: float | None, iterations: int) -> float:
+    """Step factor from the secant predictor's error at the last level (sec. 2, Step size).
+
+    The predictor's error is O(h^2), so ``sqrt(PREDICTOR_ERROR / error)`` scales the next step to
+    an error of ``PREDICTOR_ERROR``, by at most a factor 2 either way.  The sequential QP's
+    iteration count is no guide: it converges linearly from the predictor, so the count falls
+    only with log(error), and on hinged planes it sits at 10-17 whatever the step; a rule that
+    halved the step there left the 3x3 dart slanted 60 deg at 45 deg at a tilt of 9.2 deg after
+    400 increments of 5e-4 L.  A level that needed over ``HARD_LEVEL`` iterations halves the step
+    (it came close to failing).  After a landing (``error`` None) the step is kept.
+    """
+    if iterations > HARD_LEVEL:
+        return 0.5
+    if error is None:
+        return 1.0
+    return 2.0 if error == 0.0 else float(np.clip(np.sqrt(PREDICTOR_ERROR / error), 0.5, 2.0))
+
+
+def _active_pairs(eq: Equilibrium) -> set[tuple[int, int]]:
+    if eq.contacts is None or len(eq.lam) == 0:
+        return set()
+    scale = max(1e-9, 1e-6 * float(np.max(eq.lam)))
+    on = eq.lam > scale
+    return {(int(a), int(b)) for a, b in zip(eq.contacts.a[on], eq.contacts.b[on])}
