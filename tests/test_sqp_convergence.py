@@ -11,11 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import qpscale.experiments.puncture as puncture
+import qpscale.continuation as continuation
 import qpscale.increment as increment
 from qpscale import Design
 from qpscale.contact import ContactSettings, detect_contacts, penetration
-from qpscale.errors import SolverFailure
 from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture
 from qpscale.increment import PLANE_PROX, LoadPoint, PlaneDamping, SQPSettings, solve_equilibrium
 from qpscale.solvers import available_solvers
@@ -86,16 +85,15 @@ def test_dart_5x5_hinge_vertex_converges_at_every_level(monkeypatch):
     # plain (undamped) iteration re-solving the failure state, to 1e-8 relative; the CVXPY backend
     # along the same path, to 1e-6 (its QPs are answered to the same 1e-9 KKT tolerance).
     failures: list[str] = []
-    original = puncture.solve_equilibrium
+    level = continuation.solve_level
 
     def counted(*args, **kw):
-        try:
-            return original(*args, **kw)
-        except SolverFailure as exc:
-            failures.append(str(exc))
-            raise
+        out = level(*args, **kw)
+        if not out.converged:
+            failures.append(str(out.failure))
+        return out
 
-    monkeypatch.setattr(puncture, "solve_equilibrium", counted)
+    monkeypatch.setattr(continuation, "solve_level", counted)
     damped = SQPSettings(plane_damping=True)
     design = Design(shape="dart", slant_deg=60.0, rings=2)
     setup = PunctureSetup(design=design, load_point=HINGE_VERTEX, probe=False, sqp=damped)
@@ -106,7 +104,7 @@ def test_dart_5x5_hinge_vertex_converges_at_every_level(monkeypatch):
     patch, K = build_model(setup)
     assert penetration(patch, final.q) <= setup.sqp.penetration_tol
     load = LoadPoint(0, np.array([*HINGE_VERTEX, patch.design.thickness]))
-    plain = original(
+    plain = solve_equilibrium(
         patch,
         K,
         final.q,
