@@ -18,7 +18,8 @@ import scipy.sparse.linalg as spla
 
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from .errors import InvalidDesign, SolverFailure
-from .increment import Anderson, Equilibrium, LevelOutcome, LevelStatus, LoadPoint
+from .increment import Equilibrium, LoadPoint
+from .level import Anderson, LevelOutcome, LevelStatus
 from .tiling import Patch
 
 SOLVER = "penalty"

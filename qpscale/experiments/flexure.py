@@ -21,7 +21,8 @@ from shapely.geometry import Polygon, box
 from ..contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from ..errors import InvalidDesign, SolverFailure
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
-from ..increment import PLANE_PROX, Anderson, _accelerated, _pinned_only
+from ..increment import PLANE_PROX, _pinned_only
+from ..level import Anderson, _accelerated
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
 from ..solvers import solve_qp
