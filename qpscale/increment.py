@@ -1,27 +1,28 @@
 """The increment QP of a loading path and the sequential-QP equilibrium at one load level.
 
 Implements formulations/increment.md: the prescribed displacement of a material point (1)-(3),
-the increment QP (4), the sequential QP at fixed load (5)-(6) and the acceptance checks (7).
-The generic QP record and the backends live in ``qp.py`` and ``solvers/``; the contact geometry
-in ``contact.py``.
+the increment QP (4), the planes' trust region (sec. 4b) and the puncture level (``PunctureLevel``)
+that the level driver of ``level.py`` iterates, eqs. (5)-(7), with its ``other_plane_update``
+rescue (sec. 5).  The generic QP record and the backends live in ``qp.py`` and ``solvers/``; the
+contact geometry in ``contact.py``.
 """
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass, field, replace
-from enum import Enum
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
 
+from . import level
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from .contact.symmetry import Mirror
-from .errors import InvalidDesign, SolverFailure
+from .errors import InvalidDesign
 from .events import Rescue
 from .geometry import rotation_matrix, tangent_operator
-from .qp import IncrementQP, IncrementResult, resolve_tolerance
-from .solvers import solve_qp
+from .level import LevelOutcome
+from .level import LevelStatus as LevelStatus  # re-exported: a level's outcome is read with it
+from .qp import IncrementQP, resolve_tolerance
 from .tiling import Patch
 
 NDOF = 5
@@ -35,16 +36,6 @@ PLANE_DAMPING = 1.0
 # tolerances loosen both (SQPSettings).
 STEP_TOL = 1e-8
 PENETRATION_TOL = 1e-9
-# A load level whose step |dq| has not halved over STALL_WINDOW iterations while below STALL_BAND
-# is stalled on solver noise (a plane hinge fixed only to the QP tolerance over PLANE_PROX,
-# formulations/increment.md sec. 4, "Stall on noise"); its remaining QPs are solved at
-# STALL_TIGHTEN x the tolerance.  Above STALL_BAND a slow step is the path's geometry, not noise.
-STALL_WINDOW = 8
-STALL_BAND = 1e-5
-STALL_TIGHTEN = 1e-2
-# A step this many times the last restarts Anderson's history (sec. 4, Acceleration): a mildly
-# expanding mode is what the extrapolation cures, a leap out of the smooth region is not.
-ANDERSON_GROWTH = 2.0
 
 
 @dataclass(frozen=True)
@@ -160,14 +151,6 @@ class Equilibrium:
     tightened: bool = False
 
 
-def _stalled(steps: list[float]) -> bool:
-    """True when the last ``STALL_WINDOW`` steps, all below ``STALL_BAND``, did not halve the
-    smallest step before them (sec. 4, "Stall on noise")."""
-    if len(steps) <= STALL_WINDOW or steps[-1] > STALL_BAND:
-        return False
-    return min(steps[-STALL_WINDOW:]) > 0.5 * min(steps[:-STALL_WINDOW])
-
-
 def assemble_increment(
     K: sp.csc_matrix,
     q: np.ndarray,
@@ -233,48 +216,6 @@ def _with_mirror(qp: IncrementQP, mirror: Mirror, q: np.ndarray, cs: ContactSet 
         row_labels_G=qp.row_labels_G,
         row_labels_A=tuple(qp.row_labels_A or ("load",)) + tuple(labels),
     )
-
-
-class Anderson:
-    """Anderson acceleration (type II, depth m) of the fixed-point map q -> q + dq(q) (sec. 4).
-
-    The sequential QP with P = K contracts linearly at the ratio of geometric to elastic stiffness;
-    near a stability limit that ratio approaches 1 (0.985 was seen on slanted darts).  With the
-    contact rows unchanged the map is smooth and Anderson's secant extrapolation restores fast
-    convergence; any change of the row set resets the history.
-    """
-
-    def __init__(self, depth: int = 5) -> None:
-        self.depth = depth
-        self.x: list[np.ndarray] = []
-        self.f: list[np.ndarray] = []
-
-    def reset(self) -> None:
-        self.x.clear()
-        self.f.clear()
-
-    def step(self, x: np.ndarray, f: np.ndarray) -> np.ndarray:
-        """Next iterate from the current one and its QP step.
-
-        Safeguards: a step more than ``ANDERSON_GROWTH`` times the last restarts the history with a
-        plain step (the extrapolation had left the region where the map is smooth), and the least-squares
-        problem is regularised by 1e-4 |f|^2 so that differences of round-off size (a stagnating
-        residual) give small coefficients instead of cancelling the plain step.
-        """
-        if self.f and np.linalg.norm(f) > ANDERSON_GROWTH * np.linalg.norm(self.f[-1]):
-            self.reset()
-        self.x.append(x.copy())
-        self.f.append(f.copy())
-        if len(self.f) > self.depth + 1:
-            self.x.pop(0)
-            self.f.pop(0)
-        if len(self.f) < 2:
-            return x + f
-        dF = np.diff(np.array(self.f), axis=0).T
-        dG = np.diff(np.array(self.x) + np.array(self.f), axis=0).T
-        mu = 1e-4 * float(f @ f)
-        gamma = np.linalg.solve(dF.T @ dF + mu * np.eye(dF.shape[1]), dF.T @ f)
-        return x + f - dG @ gamma
 
 
 class PlaneDamping:
@@ -357,72 +298,122 @@ def _pinned_only(
     return np.where(np.repeat(carried, 3), theta, 0.0)
 
 
-def _accelerated(
-    accel: Anderson, q: np.ndarray, dq: np.ndarray, cs: ContactSet | None
-) -> tuple[np.ndarray, ContactSet | None]:
-    """Anderson step of the joint fixed-point map of the DOFs and the separating planes (sec. 4).
-
-    The planes enter as their normal and point (6 numbers each, normal re-normalised after the
-    step): they converge together with the scales, so extrapolating one without the other would
-    pair an extrapolated configuration with a lagging certificate.
-    """
-    if cs is None or cs.planes is None or not cs.planes.count:
-        return accel.step(q.reshape(-1), dq.reshape(-1)).reshape(q.shape), cs
-    keys = cs.planes.keys
-    x_pl = np.hstack([cs.planes.normal, cs.planes.point]).ravel()
-    new = cs.plane_memory
-    f_pl = np.zeros_like(x_pl)
-    if new:
-        f_pl = np.array([np.r_[new[k][0], new[k][1]] for k in keys]).ravel() - x_pl
-    z = accel.step(np.r_[q.reshape(-1), x_pl], np.r_[dq.reshape(-1), f_pl])
-    planes = z[q.size :].reshape(-1, 6)
-    normals = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
-    memory = {k: (normals[j], planes[j, 3:]) for j, k in enumerate(keys)}
-    return z[: q.size].reshape(q.shape), replace(cs, plane_memory=memory)
-
-
-class LevelStatus(str, Enum):
-    """How one load level ended (formulations/increment.md sec. 5)."""
-
-    CONVERGED = "converged"
-    QP_FAILED = "qp failed"
-    NOT_CONVERGED = "not converged"
-
-
 @dataclass(frozen=True)
-class LevelOutcome:
-    """The outcome of one load level: a status, the state if it converged, never an exception.
+class PunctureLevel:
+    """One load level of a puncture path: everything the sequential QP at that level needs.
 
-    Attributes
+    Parameters
     ----------
-    status : LevelStatus
-    state : Equilibrium or None
-        The converged state; None unless ``status`` is ``CONVERGED``.
-    failure : SolverFailure or None
-        What to report when the level failed: the backend's status, the increment, the detail.
-    rescues : tuple of Rescue
-        The declared rescues that fired on the way (``events.LEVEL_RESCUES``), in order.
+    patch : Patch
+    K : sparse (5n, 5n)
+        The substrate stiffness.
+    q0 : ndarray (n, 5)
+        The starting configuration (the last converged state, or a pushed one).
+    load : LoadPoint
+    delta : float
+        The prescribed depth, eq. (3), in L.
+    contact : ContactSettings or None
+        The contact rows; None: no contact.
+    settings : SQPSettings
+    increment : int or None
+        Index of the level in its path, for the failures and rescues it reports.
+    previous : ContactSet or None
+        The contact set of the starting state: it carries the separating planes (or, for the
+        feature formulation, keeps each pair's axis sticky, formulations/contact.md sec. 6).
+    mirror : Mirror or None
+        Holds the path on the symmetric branch of that reflection: the antisymmetric DOF modes
+        stay zero and the separating planes mirror-symmetric (sec. 2, Held symmetry).
     """
 
-    status: LevelStatus
-    state: Equilibrium | None
-    failure: SolverFailure | None = None
-    rescues: tuple[Rescue, ...] = ()
+    patch: Patch
+    K: sp.csc_matrix
+    q0: np.ndarray
+    load: LoadPoint
+    delta: float
+    contact: ContactSettings | None
+    settings: SQPSettings
+    increment: int | None = None
+    previous: ContactSet | None = None
+    mirror: Mirror | None = None
 
-    @property
-    def converged(self) -> bool:
-        return self.status is LevelStatus.CONVERGED
+    def iterate(self) -> LevelOutcome[Equilibrium]:
+        """One attempt: the sequential QP, eqs. (5)-(7), by the level driver (:func:`level.solve`)."""
+        return level.solve(_SequentialQP(self), self.q0, self.previous)
 
-    def unwrap(self) -> Equilibrium:
-        """The converged state; for a failed level, raise its failure (the error a user sees)."""
-        if self.state is not None:
-            return self.state
-        assert self.failure is not None
-        raise self.failure
+    def solve(self) -> LevelOutcome[Equilibrium]:
+        """The level under the declared rescue policy (sec. 5, ``events.LEVEL_RESCUES``).
+
+        One attempt (:meth:`iterate`); if it fails with separating planes, the level is solved
+        again from the same start with the other plane update (sec. 4b): the undamped iteration
+        can cycle on a hinged plane, the damped one creep where a plane travels far, and a
+        converged state is a fixed point of both.  A level that fails both ways reports the first
+        attempt's failure (the update the caller asked for).
+        """
+        first = self.iterate()
+        if first.converged or self.contact is None or self.contact.formulation != "plane":
+            return first
+        other = replace(self.settings, plane_damping=not self.settings.plane_damping)
+        second = replace(self, settings=other).iterate()
+        if not second.converged:
+            return replace(first, rescues=first.rescues + second.rescues)
+        how = "damped" if other.plane_damping else "undamped"
+        fired = Rescue("other_plane_update", self.delta, self.increment, how)
+        return replace(second, rescues=first.rescues + (fired,) + second.rescues)
 
 
-def _failed(status: LevelStatus, failure: SolverFailure, rescues: list[Rescue]) -> LevelOutcome:
-    return LevelOutcome(status, None, failure, tuple(rescues))
+# The increment QP linearised at a configuration q (its contact set, None without contact).
+_Linearised = tuple[np.ndarray, IncrementQP, ContactSet | None]
+
+
+class _SequentialQP:
+    """One attempt at a puncture level as a :class:`level.LevelProblem` (sec. 4).
+
+    Linearise the loading constraint and the contact gaps at the configuration (and hold the
+    symmetric branch with ``mirror``) into the increment QP (4), solve it, keep the unknowns of
+    the planes some row presses (``_pinned_only``) and, with ``plane_damping``, the trust region
+    of the pressed planes (``PlaneDamping``, the attempt's memory).
+    """
+
+    def __init__(self, at: PunctureLevel) -> None:
+        s = at.settings
+        self.at, self.damping = at, PlaneDamping()
+        self.controls = level.LevelControls(
+            s.solver, at.delta, at.increment, s.step_tol, s.penetration_tol, s.max_iter, s.anderson_depth
+        )
+
+    def linearise(self, q: np.ndarray, rows: ContactSet | None, refresh: float | None) -> _Linearised:
+        at, damped = self.at, self.at.settings.plane_damping
+        cs = None
+        if at.contact is not None:
+            cs = detect_contacts(at.patch, q, at.contact, previous=rows, refresh=refresh, mirror=at.mirror)
+        J = gap_jacobian(cs, at.patch, q) if cs is not None and len(cs.gap) else None
+        weight = self.damping.weights(cs) if damped and cs is not None and cs.n_extra else None
+        qp = assemble_increment(at.K, q, at.load, at.delta, cs, J, weight)
+        return (q, qp if at.mirror is None else _with_mirror(qp, at.mirror, q, cs), cs)
+
+    def solve(self, lin: _Linearised, tightened: bool) -> level.Step[Equilibrium]:
+        q, qp, cs = lin
+        at, s = self.at, self.at.settings
+        res, step = level.qp_step(qp, s.solver, s.accuracy, tightened, at.increment)
+        if res is None:
+            return step
+        x, lam = np.asarray(res.x), np.asarray(res.z)
+        theta = x[q.size :]
+        if cs is not None and cs.planes is not None and len(theta):
+            theta = _pinned_only(theta, cs, lam, violated=s.plane_damping, mirror=at.mirror)
+            cs = replace(cs, plane_memory=cs.planes.advanced(theta))
+            if s.plane_damping:
+                self.damping.update(cs, theta, lam)
+        F, residuals = float(np.asarray(res.y)[0]), dict(res.residuals or {})
+        answer = Equilibrium(q, at.delta, F, cs, lam if cs is not None else np.zeros(0), 0, 0.0, residuals)
+        labels = cs.labels if cs is not None else ()
+        return replace(step, answer=answer, dx=x[: q.size].reshape(q.shape), rows=cs, labels=labels)
+
+    def penetration(self, q: np.ndarray) -> float:
+        return penetration(self.at.patch, q) if self.at.contact is not None else 0.0
+
+    def state(self, q: np.ndarray, answer: Equilibrium, progress: level.Progress) -> Equilibrium:
+        return replace(answer, q=q, **asdict(progress))
 
 
 def iterate_level(
@@ -436,117 +427,16 @@ def iterate_level(
     increment: int | None = None,
     previous: ContactSet | None = None,
     mirror: Mirror | None = None,
-) -> LevelOutcome:
-    """One attempt at a load level: the sequential QP, eqs. (5)-(7), with one plane update.
+) -> LevelOutcome[Equilibrium]:
+    """One attempt at a load level, :meth:`PunctureLevel.iterate` of these arguments.
 
     Linearise the loading constraint and the contact gaps at the current configuration, solve
     the QP, update the configuration exactly (finite rotations), repeat until the update is
-    below ``step_tol``; then the exact penetration must be below ``penetration_tol``.
-    ``previous`` (the contact set of the starting state) carries the separating planes (or,
-    for the feature formulation, keeps each pair's axis sticky, formulations/contact.md sec. 6).
-    ``mirror`` holds the path on the symmetric branch of that reflection: the antisymmetric DOF
-    modes stay zero and the separating planes mirror-symmetric (sec. 2, Held symmetry).  While the
-    contact rows stay the same, the iterates are Anderson-accelerated (sec. 4).  The first two
-    rescues of the level's policy act inside (``qp_retry`` in :func:`qpscale.solvers.solve_qp`,
-    ``stall_tighten`` here); each firing is recorded in the outcome.
+    below ``step_tol``; then the exact penetration must be below ``penetration_tol``.  The first
+    two rescues of the level's policy act inside (``qp_retry`` in :func:`qpscale.solvers.solve_qp`,
+    ``stall_tighten`` in :func:`qpscale.level.solve`); each firing is recorded in the outcome.
     """
-    q = np.array(q0, dtype=float, copy=True)
-    build_s = solve_s = 0.0
-    cs = previous
-    accel = Anderson(settings.anderson_depth)
-    rows: tuple[str, ...] | None = None
-    dq = np.zeros_like(q)
-    refresh: float | None = None
-    damping = PlaneDamping()
-    accuracy: str | float = settings.accuracy
-    steps: list[float] = []
-    tighten_tried = False
-    rescues: list[Rescue] = []
-    for it in range(1, settings.max_iter + 1):
-        t0 = time.perf_counter()
-        cs = (
-            detect_contacts(patch, q, contact, previous=cs, refresh=refresh, mirror=mirror)
-            if contact is not None
-            else None
-        )
-        refresh = None
-        J = gap_jacobian(cs, patch, q) if cs is not None and len(cs.gap) else None
-        weight = damping.weights(cs) if settings.plane_damping and cs is not None and cs.n_extra else None
-        qp = assemble_increment(K, q, load, delta, cs, J, weight)
-        if mirror is not None:
-            qp = _with_mirror(qp, mirror, q, cs)
-        build_s += time.perf_counter() - t0
-        res = _solve(qp, settings.solver, accuracy)
-        if not res.found and accuracy != settings.accuracy:
-            # The backend cannot reach the tightened tolerance: back to the one asked for.
-            accuracy = settings.accuracy
-            rescues.append(Rescue("stall_tighten", delta, increment, "tightened tolerance not reached"))
-            res = _solve(qp, settings.solver, accuracy)
-        if res.extras.get("retried"):
-            rescues.append(
-                Rescue("qp_retry", delta, increment, f"first status {res.extras.get('first_status')}")
-            )
-        x, y, residuals = res.x, res.y, res.residuals
-        if not res.found or x is None or y is None or residuals is None:
-            failure = SolverFailure(settings.solver, res.status, increment, res.extras.get("detail", ""))
-            return _failed(LevelStatus.QP_FAILED, failure, rescues)
-        solve_s += res.build_s + res.solve_s
-        dq = x[: q.size].reshape(q.shape)
-        theta = x[q.size :]
-        if cs is not None and cs.planes is not None and len(theta):
-            theta = _pinned_only(theta, cs, res.z, violated=settings.plane_damping, mirror=mirror)
-            cs = replace(cs, plane_memory=cs.planes.advanced(theta))
-            if settings.plane_damping:
-                damping.update(cs, theta, np.asarray(res.z))
-        if np.max(np.abs(dq)) <= settings.step_tol:
-            q = q + dq
-            pen = penetration(patch, q) if contact is not None else 0.0
-            if pen > settings.penetration_tol:
-                refresh = settings.penetration_tol
-                continue
-            lam = res.z if res.z is not None and cs is not None else np.zeros(0)
-            state = Equilibrium(
-                q=q,
-                delta=delta,
-                F=float(y[0]),
-                contacts=cs,
-                lam=np.asarray(lam),
-                iterations=it,
-                penetration=pen,
-                residuals=dict(residuals),
-                build_s=build_s,
-                solve_s=solve_s,
-                tightened=accuracy != settings.accuracy,
-            )
-            return LevelOutcome(LevelStatus.CONVERGED, state, None, tuple(rescues))
-        steps.append(float(np.max(np.abs(dq))))
-        if not tighten_tried and _stalled(steps):
-            accuracy, tighten_tried = STALL_TIGHTEN * resolve_tolerance(settings.accuracy), True
-            rescues.append(Rescue("stall_tighten", delta, increment, f"|dq| {steps[-1]:.3g} stalled"))
-        labels = cs.labels if cs is not None else ()
-        if labels != rows:
-            accel.reset()
-            rows = labels
-        q, cs = _accelerated(accel, q, dq, cs)
-    failure = SolverFailure(
-        settings.solver,
-        "sequential QP did not converge",
-        increment,
-        f"last |dq| = {np.max(np.abs(dq)):.3g} after {settings.max_iter} iterations",
-    )
-    return _failed(LevelStatus.NOT_CONVERGED, failure, rescues)
-
-
-def _solve(qp: IncrementQP, solver: str, accuracy: str | float) -> IncrementResult:
-    """``solve_qp`` without raising on a rejected answer (``found`` says, the reason is in
-    ``extras["detail"]``); a backend that raises (bad data, an exception inside it) is a rejected
-    answer too."""
-    try:
-        return solve_qp(qp, solver=solver, accuracy=accuracy, check=False)
-    except SolverFailure as exc:
-        return IncrementResult(
-            None, None, None, False, exc.status, None, None, 0.0, 0.0, extras={"detail": exc.detail}
-        )
+    return PunctureLevel(patch, K, q0, load, delta, contact, settings, increment, previous, mirror).iterate()
 
 
 def solve_level(
@@ -560,24 +450,10 @@ def solve_level(
     increment: int | None = None,
     previous: ContactSet | None = None,
     mirror: Mirror | None = None,
-) -> LevelOutcome:
-    """A load level under the declared rescue policy (sec. 5, ``events.LEVEL_RESCUES``).
-
-    One attempt (:func:`iterate_level`); if it fails with separating planes, the level is solved
-    again from the same start with the other plane update (sec. 4b): the undamped iteration can
-    cycle on a hinged plane, the damped one creep where a plane travels far, and a converged
-    state is a fixed point of both.  A level that fails both ways reports the first attempt's
-    failure (the update the caller asked for).
-    """
-    first = iterate_level(patch, K, q0, load, delta, contact, settings, increment, previous, mirror)
-    if first.converged or contact is None or contact.formulation != "plane":
-        return first
-    other = replace(settings, plane_damping=not settings.plane_damping)
-    second = iterate_level(patch, K, q0, load, delta, contact, other, increment, previous, mirror)
-    if not second.converged:
-        return replace(first, rescues=first.rescues + second.rescues)
-    fired = Rescue("other_plane_update", delta, increment, "damped" if other.plane_damping else "undamped")
-    return replace(second, rescues=first.rescues + (fired,) + second.rescues)
+) -> LevelOutcome[Equilibrium]:
+    """A load level under the declared rescue policy, :meth:`PunctureLevel.solve` of these
+    arguments (sec. 5, ``events.LEVEL_RESCUES``)."""
+    return PunctureLevel(patch, K, q0, load, delta, contact, settings, increment, previous, mirror).solve()
 
 
 def solve_equilibrium(
@@ -599,4 +475,5 @@ def solve_equilibrium(
     SolverFailure
         When a QP fails its checks, or the iteration does not converge.
     """
-    return iterate_level(patch, K, q0, load, delta, contact, settings, increment, previous, mirror).unwrap()
+    at = PunctureLevel(patch, K, q0, load, delta, contact, settings, increment, previous, mirror)
+    return at.iterate().unwrap()

@@ -10,15 +10,17 @@ non-penetration constraints are replaced by contact forces k (-g)_+.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import level
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from .errors import InvalidDesign, SolverFailure
-from .increment import Anderson, Equilibrium, LevelOutcome, LevelStatus, LoadPoint
+from .increment import Equilibrium, LoadPoint
+from .level import LevelControls, LevelOutcome, Progress, Step
 from .tiling import Patch
 
 SOLVER = "penalty"
@@ -66,10 +68,11 @@ def substrate_scale(K: sp.spmatrix) -> float:
     return float(np.max(d[:, :3]))
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Lin:
-    """Contact rows linearised at one configuration: the set, gaps, Jacobian, penalised rows."""
+    """Contact rows linearised at the configuration ``q``: the set, gaps, Jacobian, penalised rows."""
 
+    q: np.ndarray
     cs: ContactSet | None
     g: np.ndarray
     J: sp.csr_matrix | None
@@ -85,13 +88,13 @@ def _linearise(
     patch: Patch, q: np.ndarray, contact: ContactSettings | None, previous: ContactSet | None
 ) -> _Lin:
     if contact is None:
-        return _Lin(None, np.zeros(0), None, np.zeros(0, dtype=bool))
+        return _Lin(q, None, np.zeros(0), None, np.zeros(0, dtype=bool))
     # Penalty forces act between two scales at contact points: the feature formulation's rows.
     cs = detect_contacts(patch, q, replace(contact, formulation="feature"), previous=previous)
     if cs.m == 0:
-        return _Lin(cs, np.zeros(0), None, np.zeros(0, dtype=bool))
+        return _Lin(q, cs, np.zeros(0), None, np.zeros(0, dtype=bool))
     g = np.asarray(cs.gap, dtype=float)
-    return _Lin(cs, g, gap_jacobian(cs, patch, q), g < 0.0)
+    return _Lin(q, cs, g, gap_jacobian(cs, patch, q), g < 0.0)
 
 
 def _energy_slope(K, k, x, lin, dq, p, s) -> float:
@@ -171,6 +174,51 @@ def solve_linearised(
     )
 
 
+@dataclass(frozen=True)
+class _PenaltyLevel:
+    """One penalty level as a :class:`qpscale.level.LevelProblem`: the contact rows linearised at
+    the exact configuration, the penalised problem (3) solved by Newton, the exact update."""
+
+    patch: Patch
+    K: sp.spmatrix
+    load: LoadPoint
+    delta: float
+    contact: ContactSettings | None
+    settings: PenaltySettings
+    increment: int | None
+    k: float
+
+    @property
+    def controls(self) -> LevelControls:
+        # The overlap is reported, not checked (eq. (7)); a direct solve has no tolerance to tighten.
+        s = self.settings
+        unconverged = "newton did not converge"
+        return LevelControls(
+            SOLVER, self.delta, self.increment, s.tol, np.inf, s.max_iter, 5, False, unconverged
+        )
+
+    def linearise(self, q: np.ndarray, rows: ContactSet | None, refresh: float | None) -> _Lin:
+        return _linearise(self.patch, q, self.contact, rows)
+
+    def solve(self, lin: _Lin, tightened: bool) -> Step[Equilibrium]:
+        t0, k = time.perf_counter(), self.k
+        try:
+            dq, F, n = solve_linearised(self.K, k, lin.q, lin, self.load, self.delta, self.settings)
+        except SolverFailure as exc:  # the Newton solve of one linearisation reports by raising
+            return Step(failure=SolverFailure(SOLVER, exc.status, self.increment, exc.detail))
+        # The rows' forces (6) at the configuration the step reaches, the exact one if it is the last.
+        lam = k * np.maximum(0.0, -(lin.g + lin.J @ dq.reshape(-1))) if lin.J is not None else np.zeros(0)
+        residuals = {"max_penalty_force": float(lam.max(initial=0.0)), "k": k}
+        answer = Equilibrium(lin.q, self.delta, F, lin.cs, lam, 0, 0.0, residuals)
+        return Step(answer, dx=dq, rows=lin.cs, labels=lin.key, seconds=time.perf_counter() - t0, work=n)
+
+    def penetration(self, q: np.ndarray) -> float:
+        return penetration(self.patch, q) if self.contact is not None else 0.0
+
+    def state(self, q: np.ndarray, answer: Equilibrium, progress: Progress) -> Equilibrium:
+        return replace(answer, q=q, **asdict(progress))
+
+
 def penalty_level(
     patch: Patch,
     K: sp.spmatrix,
@@ -181,48 +229,21 @@ def penalty_level(
     settings: PenaltySettings,
     increment: int | None = None,
     previous: ContactSet | None = None,
-) -> LevelOutcome:
+) -> LevelOutcome[Equilibrium]:
     """Penalty contact and Newton iterations at a fixed load level, formulations/penalty.md.
 
-    Same meaning and outcome as :func:`qpscale.increment.solve_level`: linearise the contact rows
-    at the exact configuration, solve the penalised problem (3) by Newton, update exactly, repeat
-    until the update is below ``settings.tol`` (Anderson-accelerated while the rows stay the
-    same).  The rows' forces are ``lam = k (-g)_+`` with ``k = settings.k_pen * substrate_scale(K)``.
-    The exact penetration is reported, not checked: it is O(F / k) by design (eq. (7)).  A failed
-    level has status ``qp failed`` (``"singular Newton system"``, a Newton solve that did not
-    converge) or ``not converged`` (the linearisations did not settle); the penalty baseline has
-    no rescues.
+    Same meaning and outcome as :func:`qpscale.increment.solve_level`, by the same driver
+    (:func:`qpscale.level.solve`): linearise the contact rows at the exact configuration, solve
+    the penalised problem (3) by Newton, update exactly, repeat until the update is below
+    ``settings.tol`` (Anderson-accelerated while the rows stay the same).  The rows' forces are
+    ``lam = k (-g)_+`` with ``k = settings.k_pen * substrate_scale(K)``.  The exact penetration is
+    reported, not checked: it is O(F / k) by design (eq. (7)).  A failed level has status
+    ``qp failed`` (``"singular Newton system"``, a Newton solve that did not converge) or
+    ``not converged`` (the linearisations did not settle); the penalty baseline has no rescues.
     """
     k = settings.k_pen * substrate_scale(K)
-    q = np.array(q0, dtype=float, copy=True)
-    build_s = solve_s = 0.0
-    accel, key, cs, dq, steps = Anderson(), None, previous, np.zeros_like(q), 0
-    for _ in range(settings.max_iter):
-        t0 = time.perf_counter()
-        lin = _linearise(patch, q, contact, cs)
-        cs = lin.cs if lin.cs is not None else cs
-        t1 = time.perf_counter()
-        try:
-            dq, F, n = solve_linearised(K, k, q, lin, load, delta, settings)
-        except SolverFailure as exc:  # the Newton solve of one linearisation reports by raising
-            failure = SolverFailure(SOLVER, exc.status, increment, exc.detail)
-            return LevelOutcome(LevelStatus.QP_FAILED, None, failure)
-        steps += n
-        build_s, solve_s = build_s + t1 - t0, solve_s + time.perf_counter() - t1
-        if np.max(np.abs(dq)) <= settings.tol:
-            state = _converged(patch, k, q + dq, F, lin, delta, contact, steps, build_s, solve_s)
-            return LevelOutcome(LevelStatus.CONVERGED, state)
-        if lin.key != key:
-            accel.reset()
-            key = lin.key
-        q = accel.step(q.reshape(-1), dq.reshape(-1)).reshape(q.shape)
-    failure = SolverFailure(
-        SOLVER,
-        "newton did not converge",
-        increment,
-        f"last |dq| = {np.max(np.abs(dq)):.3g} after {settings.max_iter} linearisations, k = {k:.3g}",
-    )
-    return LevelOutcome(LevelStatus.NOT_CONVERGED, None, failure)
+    problem = _PenaltyLevel(patch, K, load, delta, contact, settings, increment, k)
+    return level.solve(problem, q0, previous)
 
 
 def solve_equilibrium_penalty(
@@ -244,24 +265,3 @@ def solve_equilibrium_penalty(
         Status ``"newton did not converge"`` or ``"singular Newton system"``.
     """
     return penalty_level(patch, K, q0, load, delta, contact, settings, increment, previous).unwrap()
-
-
-def _converged(patch, k, q, F, lin, delta, contact, steps, build_s, solve_s) -> Equilibrium:
-    """The Equilibrium record: per-row penalty forces (6) and the exact overlap, unchecked."""
-    lam = np.zeros(len(lin.g))
-    if lin.J is not None:
-        lam = k * np.maximum(0.0, -(lin.g + lin.J @ (q - lin.cs.q).reshape(-1)))
-    pen = penetration(patch, q) if contact is not None else 0.0
-    residuals = {"max_penalty_force": float(lam.max(initial=0.0)), "k": k}
-    return Equilibrium(
-        q=q,
-        delta=delta,
-        F=F,
-        contacts=lin.cs,
-        lam=lam,
-        iterations=steps,
-        penetration=pen,
-        residuals=residuals,
-        build_s=build_s,
-        solve_s=solve_s,
-    )

@@ -3,7 +3,9 @@
 Every rescue is made to fire by a fault-injecting backend: Clarabel wrapped so that chosen QPs
 fail (no point, status ``injected fault``) or answer a little off (a near miss).  Each test checks
 that the rescue fired (a typed ``Rescue`` event) and that the state it reaches is the state the
-unperturbed level or path reaches, to the accuracy the sequential QP itself has.
+unperturbed level or path reaches, to the accuracy the sequential QP itself has.  The puncture
+levels and the plate positions of flexure are solved by the same driver (``qpscale.level``), so
+the level rescues are checked on both.
 """
 
 from __future__ import annotations
@@ -20,8 +22,11 @@ from qpscale import Design
 from qpscale.cli import app
 from qpscale.errors import SolverFailure
 from qpscale.events import LEVEL_RESCUES, PATH_RESCUES, Rescue
+from qpscale.experiments import flexure
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
-from qpscale.increment import LevelStatus, SQPSettings, solve_level
+from qpscale.increment import SQPSettings, solve_level
+from qpscale.level import LevelStatus
+from qpscale.membrane import MembraneModel
 from qpscale.qp import candidate_result
 
 SMALL = Design(rings=1)
@@ -158,6 +163,72 @@ def test_stall_tighten_fires_when_the_steps_stall_on_solver_noise_and_keeps_the_
     assert "stall_tighten" in [r.rescue for r in out.rescues]
     assert out.converged and out.state.tightened
     _same_state(out.state, clean)
+
+
+@pytest.fixture(scope="module")
+def plate():
+    """The one-scale membrane (coarse) at the full plate travel, solved without faults: the model,
+    the plate position and its state."""
+    setup = flexure.FlexureSetup(mode="isolated", membrane=MembraneModel(h=1.0, nz=2), increments=1)
+    model = flexure.build_model(setup)
+    clean = flexure.solve_position(model, np.zeros(len(model.cond.retained)), setup.max_deflection, 1, None)
+    assert clean.converged and not clean.rescues
+    return model, setup.max_deflection, clean.state
+
+
+def _same_position(model, w, clean, **faults):
+    """The position solved again under ``faults``: its outcome, and its state checked against the
+    clean one.  The sequential QP stops at steps of 1e-9 L, each QP answered to 1e-9 (1e-11 once
+    tightened), so the states differ by ~1e-9 in z and the plate force by ~1e-9 of itself."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(solvers._REGISTRY, "clarabel", Faults(**faults))
+        out = flexure.solve_position(model, np.zeros(len(model.cond.retained)), w, 1, None)
+    assert out.converged
+    assert np.max(np.abs(out.state.z - clean.z)) <= 1e-8 * np.max(np.abs(clean.z))
+    assert out.state.force == pytest.approx(clean.force, rel=1e-8)
+    return out
+
+
+def test_a_flexure_position_that_fails_reports_the_status_and_the_curve_stops_with_it(plate, monkeypatch):
+    model, w, _ = plate
+    faults = Faults(every=True)
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
+    out = flexure.solve_position(model, np.zeros(len(model.cond.retained)), w, 4, None)
+    assert out.status is LevelStatus.QP_FAILED and out.state is None
+    assert out.failure.status == "injected fault" and out.failure.increment == 4
+    # The first QP once more by qp_retry (Clarabel after any rejection), then the position stops.
+    assert faults.calls == 2 and [r.rescue for r in out.rescues] == ["qp_retry"]
+    # The curve cannot go on: only there the failure is raised, and the command line exits 3.
+    with pytest.raises(SolverFailure, match="injected fault"):
+        flexure.run_model(model)
+    cli = CliRunner().invoke(app, ["flexure", "--bare", "--mesh-h", "1"])
+    assert cli.exit_code == 3 and "injected fault" in cli.output
+
+
+def test_flexure_qp_retry_fires_on_a_near_miss_and_keeps_the_state(plate):
+    model, w, clean = plate
+    out = _same_position(model, w, clean, short={2})
+    assert [(r.rescue, r.delta, r.increment) for r in out.rescues] == [("qp_retry", w, 1)]
+    assert "AlmostSolved" in out.rescues[0].detail
+
+
+def test_flexure_stall_tighten_fires_on_solver_noise_and_keeps_the_state(plate):
+    # Answers accurate to 5e-10 (they pass the 1e-9 check) move z by ~3e-9 at random through the
+    # soft membrane, above the step test of 1e-9 L: the position stalls on that noise, its
+    # remaining QPs are solved at 1e-11 (exact here) and it converges to the clean state.
+    model, w, clean = plate
+    out = _same_position(model, w, clean, noise=5e-10)
+    assert [r.rescue for r in out.rescues] == ["stall_tighten"]
+
+
+def test_a_flexure_curve_records_the_rescues_of_its_positions(monkeypatch):
+    setup = flexure.FlexureSetup(mode="isolated", membrane=MembraneModel(h=1.0, nz=2), increments=1)
+    clean = flexure.run_flexure(setup)
+    assert clean.extras["rescues"] == []
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(short={2}))
+    hurt = flexure.run_flexure(setup)
+    assert [r.rescue for r in hurt.extras["rescues"]] == ["qp_retry"]
+    assert hurt.Cf_star == pytest.approx(clean.Cf_star, rel=1e-8)
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ import pytest
 
 import qpscale.continuation as continuation
 import qpscale.increment as increment
+import qpscale.level as level
 from qpscale import Design
 from qpscale.contact import ContactSettings, detect_contacts, penetration
 from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture
@@ -124,15 +125,15 @@ def test_dart_5x5_hinge_vertex_converges_at_every_level(monkeypatch):
 def test_stall_is_a_window_without_halving_below_the_band():
     # Geometric convergence (halving each step) is never a stall; a plateau below STALL_BAND is,
     # once the window has passed; the same plateau above the band is the path's geometry.
-    w, band = increment.STALL_WINDOW, increment.STALL_BAND
+    w, band = level.STALL_WINDOW, level.STALL_BAND
     halving = [1e-3 * 0.5**k for k in range(3 * w)]
-    assert not any(increment._stalled(halving[: k + 1]) for k in range(len(halving)))
+    assert not any(level._stalled(halving[: k + 1]) for k in range(len(halving)))
     # A plateau at 3e-7 +-10 %: a stall once a whole window has followed its first value.
     plateau = [1e-4, 1e-5] + [3e-7 * (1.0 + 0.1 * (-1) ** k) for k in range(2 * w)]
-    first = next(k for k in range(len(plateau)) if increment._stalled(plateau[: k + 1]))
+    first = next(k for k in range(len(plateau)) if level._stalled(plateau[: k + 1]))
     assert first == 2 + w
     high = [100 * band / 3e-7 * x for x in plateau]  # the same plateau above the band
-    assert not any(increment._stalled(high[: k + 1]) for k in range(len(high)))
+    assert not any(level._stalled(high[: k + 1]) for k in range(len(high)))
 
 
 @pytest.mark.parametrize(

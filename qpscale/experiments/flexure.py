@@ -3,8 +3,9 @@
 Implements formulations/membrane.md sections 6-8: the retained and held DOFs (eq. (9)), the
 unilateral supports held closed until their reaction pulls (eqs. (10), (10b), (8c)), the plate
 (eq. (11)), scale-scale contact by separating planes from ``qpscale.contact`` (eq. (12)), the
-sequential QP at each plate position (eq. (13)) and the compliance read-out (eq. (14)).  The
-membrane is condensed once (qpscale.membrane); every QP has only the retained DOFs and the planes.
+sequential QP at each plate position (eq. (13), iterated by the level driver of ``qpscale.level``,
+formulations/increment.md sec. 4a) and the compliance read-out (eq. (14)).  The membrane is
+condensed once (qpscale.membrane); every QP has only the retained DOFs and the planes.
 """
 
 from __future__ import annotations
@@ -18,13 +19,15 @@ import scipy.sparse as sp
 import shapely
 from shapely.geometry import Polygon, box
 
+from .. import level
 from ..contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from ..errors import InvalidDesign, SolverFailure
+from ..events import Rescue
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
-from ..increment import PLANE_PROX, Anderson, _accelerated, _pinned_only
+from ..increment import PLANE_PROX, _pinned_only
+from ..level import LevelControls, LevelOutcome, Progress, Step, qp_step
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
-from ..solvers import solve_qp
 from ..tiling import Design, Patch, build_patch
 from ..units import compliance_star
 
@@ -569,74 +572,82 @@ def _concat(parts: list[ContactSet]) -> ContactSet:
     return replace(parts[0], labels=labels, **rows)
 
 
-def _solve_level(
-    model: FlexureModel, z: Array, w: float, inc: int, previous: ContactSet | None
-) -> FlexureState:
-    """Sequential QP at one plate position, eq. (13), Anderson-accelerated while the rows are unchanged.
+# QP (13) linearised at an iterate z: the QP over (z, theta), its plate-row count, the contact set
+# of this linearisation and the rows it was solved with (feature formulation: with the rows of the
+# last ROW_MEMORY linearisations, ``_merge_rows``).
+_Linearised = tuple[Array, IncrementQP, int, ContactSet | None, ContactSet | None]
 
-    Plane formulation: the planes' unknowns follow ``z`` with the proximal weight ``PLANE_PROX``,
-    unpinned planes are zeroed, and Anderson acts on the DOFs and planes jointly (as
-    ``qpscale.increment.solve_equilibrium``).  Feature formulation: rows of the last
-    ``ROW_MEMORY`` linearisations are merged (``_merge_rows``).
+
+class _FlexureLevel:
+    """One plate position as a :class:`qpscale.level.LevelProblem`, eq. (13).
+
+    The QP's unknowns are the retained DOFs ``z`` themselves (the step is the answer minus the
+    iterate).  Plane formulation: the planes' unknowns follow ``z`` with the proximal weight
+    ``PLANE_PROX`` and unpinned planes are zeroed (as in ``qpscale.increment``).  Feature
+    formulation: rows of the last ``ROW_MEMORY`` linearisations are merged (``_merge_rows``; the
+    attempt's memory).
     """
-    setup = model.setup
-    z_plate = setup.membrane.height + (setup.design.thickness if model.patch is not None else 0.0) - w
-    n, ns = len(z), len(model.support_idx)
-    Gs = sp.csr_matrix((-np.ones(ns), (np.arange(ns), model.support_idx)), shape=(ns, n))
-    cs, accel, rows, step = previous, Anderson(), None, np.zeros(0)
-    refresh: float | None = None
-    history: list[tuple[sp.csr_matrix, Array, ContactSet | None]] = []
-    for it in range(1, MAX_ITER + 1):
-        Gp, hp, _ = _plate_rows(model, z, z_plate)
-        Gc, hc, cs = _contact_rows(model, z, cs, refresh)
-        refresh, merged = None, cs
-        if setup.formulation == "feature":
-            history = [*history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
-            Gc, hc, merged = _merge_rows(model, history, z)
-        res = _solve_qp(model, Gp, hp, Gs, model.support_gap, Gc, hc, inc)
-        x, lam = res.x[:n], np.asarray(res.z[len(hp) + ns :])
+
+    def __init__(self, model: FlexureModel, w: float, inc: int) -> None:
+        setup = model.setup
+        top = setup.membrane.height + (setup.design.thickness if model.patch is not None else 0.0)
+        n, ns = len(model.cond.retained), len(model.support_idx)
+        self.model, self.w, self.z_plate = model, w, top - w
+        self.Gs = sp.csr_matrix((-np.ones(ns), (np.arange(ns), model.support_idx)), shape=(ns, n))
+        self.controls = LevelControls(setup.solver, w, inc, STEP_TOL, PENETRATION_TOL, MAX_ITER)
+        self.history: list[tuple[sp.csr_matrix, Array, ContactSet | None]] = []
+
+    def linearise(self, z: Array, rows: ContactSet | None, refresh: float | None) -> _Linearised:
+        Gp, hp, _ = _plate_rows(self.model, z, self.z_plate)
+        Gc, hc, cs = _contact_rows(self.model, z, rows, refresh)
+        merged = cs
+        if self.model.setup.formulation == "feature":
+            self.history = [*self.history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
+            Gc, hc, merged = _merge_rows(self.model, self.history, z)
+        qp = _membrane_qp(self.model.S, Gp, hp, self.Gs, self.model.support_gap, Gc, hc)
+        return z, qp, len(hp), cs, merged
+
+    def solve(self, lin: _Linearised, tightened: bool) -> Step[FlexureState]:
+        z, qp, n_plate, cs, merged = lin
+        c = self.controls
+        res, step = qp_step(qp, c.solver, ACCURACY, tightened, c.increment)
+        if res is None:
+            return step
+        n, lam = len(z), np.asarray(res.z[n_plate + len(self.model.support_idx) :])
         if cs is not None and cs.planes is not None and cs.planes.count:
             theta = _pinned_only(res.x[n:], cs, lam)
             cs = merged = replace(cs, plane_memory=cs.planes.advanced(theta))
-        step = x - z
-        if np.max(np.abs(step)) <= STEP_TOL:
-            z = x
-            pen = _exact_penetration(model, z, z_plate)
-            if pen <= PENETRATION_TOL:
-                return FlexureState(w, float(np.sum(res.z[: len(hp)])), z, merged, lam, it, pen)
-            refresh = PENETRATION_TOL  # plane formulation: overlapping pairs restart from their best axis
-            continue
-        labels = _set_keys(merged, setup.formulation)
-        if labels != rows:
-            accel.reset()
-            rows = labels
-        z, cs = _accelerated(accel, z, step, cs)
-    detail = f"last |dz| = {np.max(np.abs(step)):.3g} after {MAX_ITER} iterations"
-    raise SolverFailure(setup.solver, "sequential QP did not converge", increment=inc, detail=detail)
+        answer = FlexureState(self.w, float(np.sum(res.z[:n_plate])), z, merged, lam, 0, 0.0)
+        labels = _set_keys(merged, self.model.setup.formulation)
+        return replace(step, answer=answer, dx=res.x[:n] - z, rows=cs, labels=labels)
+
+    def penetration(self, z: Array) -> float:
+        return _exact_penetration(self.model, z, self.z_plate)
+
+    def state(self, z: Array, answer: FlexureState, progress: Progress) -> FlexureState:
+        return replace(answer, z=z, iterations=progress.iterations, penetration=progress.penetration)
 
 
-def _solve_qp(
-    model: FlexureModel,
-    Gp: Array,
-    hp: Array,
-    Gs: sp.csr_matrix,
-    hs: Array,
-    Gc: sp.csr_matrix,
-    hc: Array,
-    inc: int,
-):
+def _membrane_qp(
+    S: sp.csc_matrix, Gp: Array, hp: Array, Gs: sp.csr_matrix, hs: Array, Gc: sp.csr_matrix, hc: Array
+) -> IncrementQP:
     """QP (13) over ``(z, theta)``: plate, support (``Gs z <= hs``) and contact rows; ``PLANE_PROX``
     on the planes."""
     n = Gs.shape[1]
     extra = Gc.shape[1] - n
-    P = sp.block_diag([model.S, PLANE_PROX * sp.identity(extra)], format="csc") if extra else model.S
+    P = sp.block_diag([S, PLANE_PROX * sp.identity(extra)], format="csc") if extra else S
     pad = sp.csr_matrix((Gp.shape[0] + Gs.shape[0], extra))
     G = sp.vstack([sp.hstack([sp.vstack([sp.csr_matrix(Gp), Gs]), pad]), Gc], format="csc")
-    qp = IncrementQP(P, np.zeros(n + extra), G, np.r_[hp, hs, hc])
-    try:
-        return solve_qp(qp, solver=model.setup.solver, accuracy=ACCURACY)
-    except SolverFailure as exc:
-        raise SolverFailure(exc.solver, exc.status, inc, exc.detail) from exc
+    return IncrementQP(P, np.zeros(n + extra), G, np.r_[hp, hs, hc])
+
+
+def solve_position(
+    model: FlexureModel, z: Array, w: float, inc: int, previous: ContactSet | None
+) -> LevelOutcome[FlexureState]:
+    """The sequential QP at one plate position, eq. (13), by the level driver
+    (:func:`qpscale.level.solve`): Anderson-accelerated while the rows are unchanged, the
+    ``stall_tighten`` and ``qp_retry`` rescues recorded in the outcome (increment.md sec. 5)."""
+    return level.solve(_FlexureLevel(model, w, inc), z, previous)
 
 
 def run_flexure(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> FlexureResult:
@@ -670,10 +681,13 @@ def run_model(model: FlexureModel, t0: float | None = None) -> FlexureResult:
     ws = np.linspace(0.0, setup.max_deflection, setup.increments + 1)
     states: list[FlexureState] = []
     cs = None
+    rescues: list[Rescue] = []
     for inc, w in enumerate(ws[1:], start=1):
         its = 0
         for _ in range(MAX_RELEASE_ROUNDS):
-            state = _solve_level(model, z, float(w), inc, cs)
+            outcome = solve_position(model, z, float(w), inc, cs)
+            rescues.extend(outcome.rescues)
+            state = outcome.unwrap()  # a position that fails ends the curve with its failure
             its += state.iterations
             model, z, released = _release_tensile(model, state.z)
             cs = state.contacts
@@ -707,5 +721,5 @@ def run_model(model: FlexureModel, t0: float | None = None) -> FlexureResult:
         wall,
         model.condense_s,
         z,
-        {"model": model, "states": states, "released": len(model.support_idx) - n_rows0},
+        {"model": model, "states": states, "released": len(model.support_idx) - n_rows0, "rescues": rescues},
     )

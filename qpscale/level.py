@@ -1,0 +1,349 @@
+"""One load level: the sequential iteration shared by puncture, flexure and the penalty baseline.
+
+Implements formulations/increment.md sec. 4-5: linearise at the current iterate, solve the
+linearised problem, update exactly, repeat until the step is below the step test (5), then accept
+only if the exact penetration passes (6); stall detection and its ``stall_tighten`` rescue, the
+Anderson acceleration of the DOFs and the separating planes together, and the outcome of the
+level as a value (``LevelOutcome``), never an exception.  What varies between the three uses is
+a :class:`LevelProblem`: the puncture increment QP (``qpscale.increment``), the membrane QP of
+three-point bending (``qpscale.experiments.flexure``, formulations/membrane.md eq. (13)) and the
+penalised Newton system (``qpscale.penalty``, formulations/penalty.md).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Hashable
+from dataclasses import dataclass, field, replace
+from enum import Enum
+from typing import Any, Generic, Protocol, TypeVar
+
+import numpy as np
+
+from .contact import ContactSet
+from .errors import SolverFailure
+from .events import Rescue
+from .qp import IncrementQP, IncrementResult, resolve_tolerance
+from .solvers import solve_qp
+
+# A load level whose step has not halved over STALL_WINDOW iterations while below STALL_BAND is
+# stalled on solver noise (a plane hinge fixed only to the QP tolerance over PLANE_PROX,
+# formulations/increment.md sec. 4, "Stall on noise"); its remaining QPs are solved at
+# STALL_TIGHTEN x the tolerance.  Above STALL_BAND a slow step is the path's geometry, not noise.
+STALL_WINDOW = 8
+STALL_BAND = 1e-5
+STALL_TIGHTEN = 1e-2
+# A step this many times the last restarts Anderson's history (sec. 4, Acceleration): a mildly
+# expanding mode is what the extrapolation cures, a leap out of the smooth region is not.
+ANDERSON_GROWTH = 2.0
+
+L = TypeVar("L")  # one linearisation of a level problem
+S = TypeVar("S")  # the converged state of a level
+
+
+class LevelStatus(str, Enum):
+    """How one load level ended (formulations/increment.md sec. 5)."""
+
+    CONVERGED = "converged"
+    QP_FAILED = "qp failed"
+    NOT_CONVERGED = "not converged"
+
+
+@dataclass(frozen=True)
+class LevelOutcome(Generic[S]):
+    """The outcome of one load level: a status, the state if it converged, never an exception.
+
+    Attributes
+    ----------
+    status : LevelStatus
+    state : S or None
+        The converged state (``increment.Equilibrium``, ``flexure.FlexureState``); None unless
+        ``status`` is ``CONVERGED``.
+    failure : SolverFailure or None
+        What to report when the level failed: the backend's status, the increment, the detail.
+    rescues : tuple of Rescue
+        The declared rescues that fired on the way (``events.LEVEL_RESCUES``), in order.
+    """
+
+    status: LevelStatus
+    state: S | None
+    failure: SolverFailure | None = None
+    rescues: tuple[Rescue, ...] = ()
+
+    @property
+    def converged(self) -> bool:
+        return self.status is LevelStatus.CONVERGED
+
+    def unwrap(self) -> S:
+        """The converged state; for a failed level, raise its failure (the error a user sees)."""
+        if self.state is not None:
+            return self.state
+        assert self.failure is not None
+        raise self.failure
+
+
+@dataclass(frozen=True)
+class LevelControls:
+    """The numbers that steer one level's iteration.
+
+    Parameters
+    ----------
+    solver : str
+        Who solves each linearisation (a QP backend, ``penalty``), named in the failures.
+    delta : float
+        The load level (puncture depth or plate displacement, L), recorded with each rescue.
+    increment : int or None
+        Index of the level in its path, recorded with each rescue and failure.
+    step_tol, penetration_tol : float
+        Converged when ``max |dx| <= step_tol``, eq. (5), and the exact overlap after the step
+        is at most ``penetration_tol``, eq. (6); ``inf``: reported unchecked (the penalty
+        baseline, whose overlap is O(F / k) by design).
+    max_iter : int
+        Linearisations before the level is ``not converged``.
+    anderson_depth : int
+        Depth of the acceleration; 0 is the plain fixed-point iteration.
+    tighten : bool
+        Whether the solve has a tolerance to tighten (``stall_tighten``); False (a direct Newton
+        solve) turns the stall rule off.
+    unconverged : str
+        The status of a level that did not converge.
+    """
+
+    solver: str
+    delta: float
+    increment: int | None
+    step_tol: float
+    penetration_tol: float
+    max_iter: int
+    anderson_depth: int = 5
+    tighten: bool = True
+    unconverged: str = "sequential QP did not converge"
+
+
+@dataclass(frozen=True)
+class Step(Generic[S]):
+    """One linearisation solved: the step it takes, or why there is none.
+
+    Attributes
+    ----------
+    answer : S or None
+        The state the level ends in if this is its last step (its DOFs, counts and times are
+        filled in then, by ``LevelProblem.state``); None when the solve failed.
+    failure : SolverFailure or None
+        Why the solve failed: the solver's status, the increment, the detail.
+    dx : ndarray
+        The step of the DOFs (shape of the iterate); the exact update is ``x + dx``.
+    rows : ContactSet or None
+        The contact set to linearise at next, its separating planes moved by the step.
+    labels : Hashable
+        What identifies the rows: a change restarts Anderson's history.
+    seconds : float
+        Time spent in the solve.
+    work : int
+        Iterations the step counts for (1 for a QP, the Newton steps of the penalty system).
+    retried : str or None
+        The first status of a QP answered only on its retry (``qp_retry``).
+    """
+
+    answer: S | None = None
+    failure: SolverFailure | None = None
+    dx: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rows: ContactSet | None = None
+    labels: Hashable = ()
+    seconds: float = 0.0
+    work: int = 1
+    retried: str | None = None
+
+
+@dataclass(frozen=True)
+class Progress:
+    """What the iteration measured on its way to a converged state (the fields of
+    ``increment.Equilibrium`` of those names)."""
+
+    iterations: int
+    penetration: float
+    build_s: float
+    solve_s: float
+    tightened: bool
+
+
+class LevelProblem(Protocol[L, S]):
+    """What varies between the levels of puncture, flexure and the penalty baseline.
+
+    How to linearise at an iterate with the rows carried from the last step (``refresh``:
+    restart the overlapping pairs' planes, contact.md sec. 7), how to solve one linearisation
+    (``tightened``: at ``STALL_TIGHTEN`` times its tolerance) into a step, the exact overlap
+    at a configuration, and the converged state from the last step's answer.  A problem object
+    serves one attempt at one level: it may keep that attempt's memory.
+    """
+
+    @property
+    def controls(self) -> LevelControls: ...
+
+    def linearise(self, x: np.ndarray, rows: ContactSet | None, refresh: float | None) -> L: ...
+
+    def solve(self, lin: L, tightened: bool) -> Step[S]: ...
+
+    def penetration(self, x: np.ndarray) -> float: ...
+
+    def state(self, x: np.ndarray, answer: S, progress: Progress) -> S: ...
+
+
+def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | None = None) -> LevelOutcome[S]:
+    """One attempt at a load level from ``start`` (formulations/increment.md sec. 4-5).
+
+    Linearise, solve, step; converged when ``max |dx| <= step_tol``, eq. (5), and then only if
+    the exact penetration at ``x + dx`` is at most ``penetration_tol``, eq. (6), otherwise the
+    iteration goes on with the overlapping pairs' planes refreshed.  While the row set keeps its
+    labels the iterates are Anderson-accelerated (DOFs and planes together, ``_accelerated``).
+    A level whose steps stall on solver noise (``_stalled``) is solved on at ``STALL_TIGHTEN``
+    times the tolerance, once, and back at the tolerance if the backend cannot reach that
+    (``stall_tighten``); a QP answered only on its retry is recorded (``qp_retry``).  ``rows``
+    is the contact set carried in from the starting state.
+    """
+    c = problem.controls
+    x = np.array(start, dtype=float, copy=True)
+    accel = Anderson(c.anderson_depth)
+    labels: Hashable = None
+    dx = np.zeros_like(x)
+    refresh: float | None = None
+    tightened = tighten_tried = False
+    steps: list[float] = []
+    rescues: list[Rescue] = []
+    build_s = solve_s = 0.0
+    work = 0
+    for _ in range(c.max_iter):
+        t0 = time.perf_counter()
+        lin = problem.linearise(x, rows, refresh)
+        refresh = None
+        build_s += time.perf_counter() - t0
+        step = problem.solve(lin, tightened)
+        if step.answer is None and tightened:
+            # The backend cannot reach the tightened tolerance: back to the one asked for.
+            tightened = False
+            rescues.append(Rescue("stall_tighten", c.delta, c.increment, "tightened tolerance not reached"))
+            step = problem.solve(lin, tightened)
+        if step.retried is not None:
+            rescues.append(Rescue("qp_retry", c.delta, c.increment, f"first status {step.retried}"))
+        if step.answer is None:
+            return LevelOutcome(LevelStatus.QP_FAILED, None, step.failure, tuple(rescues))
+        solve_s += step.seconds
+        work += step.work
+        dx, rows = step.dx, step.rows
+        size = float(np.max(np.abs(dx), initial=0.0))
+        if size <= c.step_tol:
+            x = x + dx
+            pen = problem.penetration(x)
+            if pen > c.penetration_tol:
+                refresh = c.penetration_tol
+                continue
+            state = problem.state(x, step.answer, Progress(work, pen, build_s, solve_s, tightened))
+            return LevelOutcome(LevelStatus.CONVERGED, state, None, tuple(rescues))
+        steps.append(size)
+        if c.tighten and not tighten_tried and _stalled(steps):
+            tightened = tighten_tried = True
+            rescues.append(Rescue("stall_tighten", c.delta, c.increment, f"|dx| {size:.3g} stalled"))
+        if step.labels != labels:
+            accel.reset()
+            labels = step.labels
+        x, rows = _accelerated(accel, x, dx, rows)
+    detail = f"last |dx| = {np.max(np.abs(dx), initial=0.0):.3g} after {c.max_iter} linearisations"
+    failure = SolverFailure(c.solver, c.unconverged, c.increment, detail)
+    return LevelOutcome(LevelStatus.NOT_CONVERGED, None, failure, tuple(rescues))
+
+
+def qp_step(
+    qp: IncrementQP, solver: str, accuracy: str | float, tightened: bool, increment: int | None
+) -> tuple[IncrementResult | None, Step[Any]]:
+    """``solve_qp`` as a level's solve: the answer if it passed its check, and the step so far.
+
+    ``tightened``: at ``STALL_TIGHTEN`` times the tolerance of ``accuracy``.  The step carries
+    the solve's time and, when the answer came only on ``solve_qp``'s own retry, its first
+    status; without an answer (None), the failure to report.  ``solve_qp`` runs without raising
+    (``check=False``, the reason of a rejection in ``extras["detail"]``); a backend that raises
+    (bad data, an exception inside it) is a rejected answer too.
+    """
+    tol = STALL_TIGHTEN * resolve_tolerance(accuracy) if tightened else accuracy
+    try:
+        res = solve_qp(qp, solver=solver, accuracy=tol, check=False)
+    except SolverFailure as exc:
+        return None, Step(failure=SolverFailure(solver, exc.status, increment, exc.detail))
+    retried = str(res.extras.get("first_status")) if res.extras.get("retried") else None
+    if not res.found or res.x is None or res.y is None or res.z is None or res.residuals is None:
+        failure = SolverFailure(solver, res.status, increment, res.extras.get("detail", ""))
+        return None, Step(failure=failure, retried=retried)
+    return res, Step(seconds=res.build_s + res.solve_s, retried=retried)
+
+
+def _stalled(steps: list[float]) -> bool:
+    """True when the last ``STALL_WINDOW`` steps, all below ``STALL_BAND``, did not halve the
+    smallest step before them (sec. 4, "Stall on noise")."""
+    if len(steps) <= STALL_WINDOW or steps[-1] > STALL_BAND:
+        return False
+    return min(steps[-STALL_WINDOW:]) > 0.5 * min(steps[:-STALL_WINDOW])
+
+
+class Anderson:
+    """Anderson acceleration (type II, depth m) of the fixed-point map q -> q + dq(q) (sec. 4).
+
+    The sequential QP with P = K contracts linearly at the ratio of geometric to elastic stiffness;
+    near a stability limit that ratio approaches 1 (0.985 was seen on slanted darts).  With the
+    contact rows unchanged the map is smooth and Anderson's secant extrapolation restores fast
+    convergence; any change of the row set resets the history.
+    """
+
+    def __init__(self, depth: int = 5) -> None:
+        self.depth = depth
+        self.x: list[np.ndarray] = []
+        self.f: list[np.ndarray] = []
+
+    def reset(self) -> None:
+        self.x.clear()
+        self.f.clear()
+
+    def step(self, x: np.ndarray, f: np.ndarray) -> np.ndarray:
+        """Next iterate from the current one and its QP step.
+
+        Safeguards: a step more than ``ANDERSON_GROWTH`` times the last restarts the history with a
+        plain step (the extrapolation had left the region where the map is smooth), and the least-squares
+        problem is regularised by 1e-4 |f|^2 so that differences of round-off size (a stagnating
+        residual) give small coefficients instead of cancelling the plain step.
+        """
+        if self.f and np.linalg.norm(f) > ANDERSON_GROWTH * np.linalg.norm(self.f[-1]):
+            self.reset()
+        self.x.append(x.copy())
+        self.f.append(f.copy())
+        if len(self.f) > self.depth + 1:
+            self.x.pop(0)
+            self.f.pop(0)
+        if len(self.f) < 2:
+            return x + f
+        dF = np.diff(np.array(self.f), axis=0).T
+        dG = np.diff(np.array(self.x) + np.array(self.f), axis=0).T
+        mu = 1e-4 * float(f @ f)
+        gamma = np.linalg.solve(dF.T @ dF + mu * np.eye(dF.shape[1]), dF.T @ f)
+        return x + f - dG @ gamma
+
+
+def _accelerated(
+    accel: Anderson, q: np.ndarray, dq: np.ndarray, cs: ContactSet | None
+) -> tuple[np.ndarray, ContactSet | None]:
+    """Anderson step of the joint fixed-point map of the DOFs and the separating planes (sec. 4).
+
+    The planes enter as their normal and point (6 numbers each, normal re-normalised after the
+    step): they converge together with the scales, so extrapolating one without the other would
+    pair an extrapolated configuration with a lagging certificate.
+    """
+    if cs is None or cs.planes is None or not cs.planes.count:
+        return accel.step(q.reshape(-1), dq.reshape(-1)).reshape(q.shape), cs
+    keys = cs.planes.keys
+    x_pl = np.hstack([cs.planes.normal, cs.planes.point]).ravel()
+    new = cs.plane_memory
+    f_pl = np.zeros_like(x_pl)
+    if new:
+        f_pl = np.array([np.r_[new[k][0], new[k][1]] for k in keys]).ravel() - x_pl
+    z = accel.step(np.r_[q.reshape(-1), x_pl], np.r_[dq.reshape(-1), f_pl])
+    planes = z[q.size :].reshape(-1, 6)
+    normals = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    memory = {k: (normals[j], planes[j, 3:]) for j, k in enumerate(keys)}
+    return z[: q.size].reshape(q.shape), replace(cs, plane_memory=memory)
