@@ -10,7 +10,7 @@ mode, and the held-symmetric branch left at a bifurcation).
 A :class:`Path` is given
 
 (a) a level solver (:class:`LevelSolver`): the converged state at a depth from a start state, or
-    why there is none (``increment.solve_level`` through :class:`SQPLevels`, or the penalty
+    why there is none (``increment.PunctureLevel.solve`` through :class:`SQPLevels`, or the penalty
     baseline through :class:`PenaltyLevels`);
 (b) the functions of a state it reads (:class:`StateFunctions`): stored energy, how much the
     energy moves per unit of error in q, tilt, stability;
@@ -38,7 +38,7 @@ from .contact.symmetry import Mirror
 from .errors import SolverFailure
 from .events import Branch, ContactChange, Event, Failure, Rescue, Snap
 from .geometry import tilt
-from .increment import STEP_TOL, Equilibrium, LevelOutcome, LoadPoint, SQPSettings, solve_level
+from .increment import STEP_TOL, Equilibrium, LevelOutcome, LoadPoint, PunctureLevel, SQPSettings
 from .penalty import PenaltySettings, penalty_level
 from .stability import Stability, second_variation
 from .tiling import Patch
@@ -83,7 +83,7 @@ class LevelSolver(Protocol):
 
 @dataclass(frozen=True)
 class SQPLevels:
-    """The sequential-QP level (``increment.solve_level``) under the path's settings.
+    """The sequential-QP level (``increment.PunctureLevel.solve``) under the path's settings.
 
     ``mirror`` holds the level on the symmetric branch of that reflection (configuration and
     separating planes, formulations/puncture.md sec. 4).
@@ -97,18 +97,19 @@ class SQPLevels:
     mirror: Mirror | None = None
 
     def __call__(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
-        return solve_level(
+        settings = self.sqp(descent)
+        return PunctureLevel(
             self.patch,
             self.K,
             start.q,
             self.load,
             delta,
             self.contact,
-            self.sqp(descent),
-            increment=index,
-            previous=start.contacts,
-            mirror=self.mirror,
-        )
+            settings,
+            index,
+            start.contacts,
+            self.mirror,
+        ).solve()
 
     def sqp(self, descent: bool = False) -> SQPSettings:
         """The SQP settings of a level: the plain iteration for a landing (``descent``), and no

@@ -337,7 +337,16 @@ class PunctureLevel:
     mirror: Mirror | None = None
 
     def iterate(self) -> LevelOutcome[Equilibrium]:
-        """One attempt: the sequential QP, eqs. (5)-(7), by the level driver (:func:`level.solve`)."""
+        """One attempt: the sequential QP, eqs. (5)-(7), by the level driver (:func:`level.solve`).
+
+        Linearise the loading constraint and the contact gaps at the current configuration, solve
+        the QP, update the configuration exactly (finite rotations), repeat until the update is
+        below ``step_tol``; then the exact penetration must be below ``penetration_tol``.  The
+        first two rescues of the level's policy act inside (``qp_retry`` in
+        :func:`qpscale.solvers.solve_qp`, ``stall_tighten`` in :func:`qpscale.level.solve`); each
+        firing is recorded in the outcome.  ``.iterate().unwrap()`` is the state, or the failure
+        raised as :class:`~qpscale.errors.SolverFailure`.
+        """
         return level.solve(_SequentialQP(self), self.q0, self.previous)
 
     def solve(self) -> LevelOutcome[Equilibrium]:
@@ -414,66 +423,3 @@ class _SequentialQP:
 
     def state(self, q: np.ndarray, answer: Equilibrium, progress: level.Progress) -> Equilibrium:
         return replace(answer, q=q, **asdict(progress))
-
-
-def iterate_level(
-    patch: Patch,
-    K: sp.csc_matrix,
-    q0: np.ndarray,
-    load: LoadPoint,
-    delta: float,
-    contact: ContactSettings | None,
-    settings: SQPSettings,
-    increment: int | None = None,
-    previous: ContactSet | None = None,
-    mirror: Mirror | None = None,
-) -> LevelOutcome[Equilibrium]:
-    """One attempt at a load level, :meth:`PunctureLevel.iterate` of these arguments.
-
-    Linearise the loading constraint and the contact gaps at the current configuration, solve
-    the QP, update the configuration exactly (finite rotations), repeat until the update is
-    below ``step_tol``; then the exact penetration must be below ``penetration_tol``.  The first
-    two rescues of the level's policy act inside (``qp_retry`` in :func:`qpscale.solvers.solve_qp`,
-    ``stall_tighten`` in :func:`qpscale.level.solve`); each firing is recorded in the outcome.
-    """
-    return PunctureLevel(patch, K, q0, load, delta, contact, settings, increment, previous, mirror).iterate()
-
-
-def solve_level(
-    patch: Patch,
-    K: sp.csc_matrix,
-    q0: np.ndarray,
-    load: LoadPoint,
-    delta: float,
-    contact: ContactSettings | None,
-    settings: SQPSettings,
-    increment: int | None = None,
-    previous: ContactSet | None = None,
-    mirror: Mirror | None = None,
-) -> LevelOutcome[Equilibrium]:
-    """A load level under the declared rescue policy, :meth:`PunctureLevel.solve` of these
-    arguments (sec. 5, ``events.LEVEL_RESCUES``)."""
-    return PunctureLevel(patch, K, q0, load, delta, contact, settings, increment, previous, mirror).solve()
-
-
-def solve_equilibrium(
-    patch: Patch,
-    K: sp.csc_matrix,
-    q0: np.ndarray,
-    load: LoadPoint,
-    delta: float,
-    contact: ContactSettings | None,
-    settings: SQPSettings,
-    increment: int | None = None,
-    previous: ContactSet | None = None,
-    mirror: Mirror | None = None,
-) -> Equilibrium:
-    """One attempt at a load level (:func:`iterate_level`), its state or its failure raised.
-
-    Raises
-    ------
-    SolverFailure
-        When a QP fails its checks, or the iteration does not converge.
-    """
-    at = PunctureLevel(patch, K, q0, load, delta, contact, settings, increment, previous, mirror)
-    return at.iterate().unwrap()

@@ -232,7 +232,7 @@ def penalty_level(
 ) -> LevelOutcome[Equilibrium]:
     """Penalty contact and Newton iterations at a fixed load level, formulations/penalty.md.
 
-    Same meaning and outcome as :func:`qpscale.increment.solve_level`, by the same driver
+    Same meaning and outcome as :meth:`qpscale.increment.PunctureLevel.solve`, by the same driver
     (:func:`qpscale.level.solve`): linearise the contact rows at the exact configuration, solve
     the penalised problem (3) by Newton, update exactly, repeat until the update is below
     ``settings.tol`` (Anderson-accelerated while the rows stay the same).  The rows' forces are
@@ -240,28 +240,8 @@ def penalty_level(
     reported, not checked: it is O(F / k) by design (eq. (7)).  A failed level has status
     ``qp failed`` (``"singular Newton system"``, a Newton solve that did not converge) or
     ``not converged`` (the linearisations did not settle); the penalty baseline has no rescues.
+    ``penalty_level(...).unwrap()`` is the state, or the failure raised.
     """
     k = settings.k_pen * substrate_scale(K)
     problem = _PenaltyLevel(patch, K, load, delta, contact, settings, increment, k)
     return level.solve(problem, q0, previous)
-
-
-def solve_equilibrium_penalty(
-    patch: Patch,
-    K: sp.spmatrix,
-    q0: np.ndarray,
-    load: LoadPoint,
-    delta: float,
-    contact: ContactSettings | None,
-    settings: PenaltySettings,
-    increment: int | None = None,
-    previous: ContactSet | None = None,
-) -> Equilibrium:
-    """:func:`penalty_level`'s state, or its failure raised.
-
-    Raises
-    ------
-    SolverFailure
-        Status ``"newton did not converge"`` or ``"singular Newton system"``.
-    """
-    return penalty_level(patch, K, q0, load, delta, contact, settings, increment, previous).unwrap()

@@ -12,7 +12,7 @@ from qpscale.contact import ContactSettings, contact_forces, detect_contacts, ga
 from qpscale.contact.planes import tangent_basis
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
 from qpscale.geometry import rotation_matrices
-from qpscale.increment import SQPSettings, solve_equilibrium
+from qpscale.increment import PunctureLevel, SQPSettings
 
 PLANE = ContactSettings()
 
@@ -99,8 +99,16 @@ def test_converged_state_does_not_depend_on_the_starting_planes():
     n = cs.planes.normal + 0.05 * tangent_basis(cs.planes.normal)[:, :, 0]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     tilted = replace(cs, plane_memory={k: (n[j], cs.planes.point[j]) for j, k in enumerate(cs.planes.keys)})
-    a = solve_equilibrium(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=cs)
-    b = solve_equilibrium(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=tilted)
+    a = (
+        PunctureLevel(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=cs)
+        .iterate()
+        .unwrap()
+    )
+    b = (
+        PunctureLevel(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=tilted)
+        .iterate()
+        .unwrap()
+    )
     assert np.abs(a.q - b.q).max() < 1e-7
     assert a.F == pytest.approx(b.F, rel=1e-7)
     assert penetration(patch, b.q) <= 1e-9
@@ -119,8 +127,12 @@ def test_plane_and_feature_formulations_agree_on_one_load_level():
     i = int(np.argmin([abs(s.delta - 0.2) for s in result.states]))
     start, state = result.states[i - 1], result.states[i]
     feature = ContactSettings(formulation="feature")
-    a = solve_equilibrium(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=start.contacts)
-    b = solve_equilibrium(patch, K, start.q, load, state.delta, feature, SQPSettings())
+    a = (
+        PunctureLevel(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=start.contacts)
+        .iterate()
+        .unwrap()
+    )
+    b = PunctureLevel(patch, K, start.q, load, state.delta, feature, SQPSettings()).iterate().unwrap()
     assert a.F == pytest.approx(b.F, rel=1e-4)
     assert np.abs(a.q - b.q).max() < 1e-4
 

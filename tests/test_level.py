@@ -24,7 +24,7 @@ from qpscale.errors import SolverFailure
 from qpscale.events import LEVEL_RESCUES, PATH_RESCUES, Rescue
 from qpscale.experiments import flexure
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
-from qpscale.increment import SQPSettings, solve_level
+from qpscale.increment import PunctureLevel, SQPSettings
 from qpscale.level import LevelStatus
 from qpscale.membrane import MembraneModel
 from qpscale.qp import candidate_result
@@ -86,7 +86,7 @@ def level():
     setup = PunctureSetup(design=SMALL, load_point=EDGE, probe=False)
     patch, K = build_model(setup)
     args = (patch, K, np.zeros((patch.n_scales, 5)), _load_point(patch, EDGE), DEPTH, setup.contact)
-    clean = solve_level(*args, SQPSettings())
+    clean = PunctureLevel(*args, SQPSettings()).solve()
     assert clean.converged and not clean.rescues and clean.state.contacts.planes.count > 0
     return args, clean.state
 
@@ -116,7 +116,7 @@ def test_a_level_that_fails_reports_the_backends_status_and_no_state(level, monk
     args, _ = level
     faults = Faults(every=True)
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
-    out = solve_level(*args, SQPSettings(), increment=7)
+    out = PunctureLevel(*args, SQPSettings(), increment=7).solve()
     assert out.status is LevelStatus.QP_FAILED and out.state is None
     assert out.failure.status == "injected fault" and out.failure.increment == 7
     # Both plane updates were tried, each QP once more by qp_retry (Clarabel after any rejection).
@@ -135,7 +135,7 @@ def test_a_path_whose_levels_fail_exits_3_with_the_status(monkeypatch):
 def test_qp_retry_fires_on_a_near_miss_and_keeps_the_state(level, monkeypatch):
     args, clean = level
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(short={2}))
-    out = solve_level(*args, SQPSettings())
+    out = PunctureLevel(*args, SQPSettings()).solve()
     assert out.converged and [r.rescue for r in out.rescues] == ["qp_retry"]
     assert "AlmostSolved" in out.rescues[0].detail
     _same_state(out.state, clean)
@@ -145,7 +145,7 @@ def test_other_plane_update_fires_when_the_first_attempt_fails_and_keeps_the_sta
     args, clean = level
     faults = Faults(fail={2})  # the first attempt's second QP fails, and so does its retry
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
-    out = solve_level(*args, SQPSettings())
+    out = PunctureLevel(*args, SQPSettings()).solve()
     assert out.converged
     assert [r.rescue for r in out.rescues] == ["qp_retry", "other_plane_update"]
     assert out.rescues[-1].detail == "damped"
@@ -159,7 +159,7 @@ def test_stall_tighten_fires_when_the_steps_stall_on_solver_noise_and_keeps_the_
     # here), and it converges to the state the ordinary level reaches.
     args, clean = level
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(noise=5e-10))
-    out = solve_level(*args, SQPSettings(step_tol=1e-10))
+    out = PunctureLevel(*args, SQPSettings(step_tol=1e-10)).solve()
     assert "stall_tighten" in [r.rescue for r in out.rescues]
     assert out.converged and out.state.tightened
     _same_state(out.state, clean)
@@ -254,22 +254,22 @@ def test_plain_iteration_fires_when_no_step_converges_and_the_path_keeps_Fc(alon
     setup, clean = alone
     faults = Faults(every=True)
     faults.active = False
-    original = continuation.solve_level
+    original = PunctureLevel.solve
     levels = {"n": 0}
 
-    def level_with_faults(*args, **kw):
+    def level_with_faults(self):
         # From the fifth level on, every extrapolated iteration fails until the path falls back
         # on the plain iteration (anderson_depth = 0), which the faults spare.
         levels["n"] += 1
-        faults.active = levels["n"] >= 5 and args[6].anderson_depth > 0 and not fired()
-        return original(*args, **kw)
+        faults.active = levels["n"] >= 5 and self.settings.anderson_depth > 0 and not fired()
+        return original(self)
 
     def fired():
         return any(getattr(e, "rescue", "") == "plain_iteration" for e in events)
 
     events: list = []
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
-    monkeypatch.setattr(continuation, "solve_level", level_with_faults)
+    monkeypatch.setattr(PunctureLevel, "solve", level_with_faults)
     original_run = continuation.Path.run
 
     def run(self, *a, **kw):

@@ -11,7 +11,7 @@ from qpscale.contact.symmetry import Mirror, map_dofs
 from qpscale.continuation import predict
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, puncture_path
 from qpscale.experiments.symmetry import mirror_through, patch_symmetries
-from qpscale.increment import SQPSettings, solve_equilibrium
+from qpscale.increment import PunctureLevel, SQPSettings
 
 CORNER = np.array([1.0, 1.0])  # a corner of the 3x3 square's loaded scale: on the diagonal mirror
 
@@ -100,8 +100,12 @@ def test_a_held_state_is_an_equilibrium_of_the_free_problem(corner):
         states.append(path.solve(predict(states, delta), delta, len(states)).unwrap())
     for held in states[1:]:
         assert np.max(np.abs(held.q - map_dofs(held.q, mirror.M, mirror.perm))) < 1e-12
-        free = solve_equilibrium(
-            patch, K, held.q, load, held.delta, setup.contact, SQPSettings(), previous=held.contacts
+        free = (
+            PunctureLevel(
+                patch, K, held.q, load, held.delta, setup.contact, SQPSettings(), previous=held.contacts
+            )
+            .iterate()
+            .unwrap()
         )
         assert free.iterations <= 2
         assert free.F == pytest.approx(held.F, rel=1e-8)

@@ -11,7 +11,7 @@ from qpscale.contact import ContactSettings
 from qpscale.errors import InvalidDesign, SolverFailure
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
 from qpscale.increment import SQPSettings
-from qpscale.penalty import PenaltySettings, solve_equilibrium_penalty, substrate_scale
+from qpscale.penalty import PenaltySettings, penalty_level, substrate_scale
 from qpscale.tiling import Design
 
 # 3x3 square, load on the mid-edge top point: contact with 25 active rows, QP path ~1 s.
@@ -44,7 +44,7 @@ def _level(k_pen: float, **kw):
     contact set settled; the measured constants below are at this level), from the QP state."""
     _, patch, K, res = _qp_path()
     st = min(res.states, key=lambda s: abs(s.delta - 0.28))
-    eq = solve_equilibrium_penalty(
+    eq = penalty_level(
         patch,
         K,
         st.q,
@@ -53,7 +53,7 @@ def _level(k_pen: float, **kw):
         FEATURE,
         PenaltySettings(k_pen=k_pen, **kw),
         previous=st.contacts,
-    )
+    ).unwrap()
     return st, eq
 
 

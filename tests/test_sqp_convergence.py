@@ -11,13 +11,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import qpscale.continuation as continuation
 import qpscale.increment as increment
 import qpscale.level as level
 from qpscale import Design
 from qpscale.contact import ContactSettings, detect_contacts, penetration
 from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture
-from qpscale.increment import PLANE_PROX, LoadPoint, PlaneDamping, SQPSettings, solve_equilibrium
+from qpscale.increment import PLANE_PROX, LoadPoint, PlaneDamping, PunctureLevel, SQPSettings
 from qpscale.solvers import available_solvers
 
 DART = Design(shape="dart", slant_deg=60.0, rings=1)
@@ -61,17 +60,25 @@ def test_damping_moves_no_converged_state(dart_model, monkeypatch):
     setup, patch, K = dart_model
     load = LoadPoint(0, np.array([*HINGE_VERTEX, patch.design.thickness]))
     sqp = SQPSettings(plane_damping=True)
-    damped = solve_equilibrium(patch, K, np.zeros((patch.n_scales, 5)), load, 0.5, setup.contact, sqp)
+    damped = (
+        PunctureLevel(patch, K, np.zeros((patch.n_scales, 5)), load, 0.5, setup.contact, sqp)
+        .iterate()
+        .unwrap()
+    )
     assert damped.penetration <= sqp.penetration_tol
-    plain = solve_equilibrium(
-        patch,
-        K,
-        damped.q,
-        load,
-        0.5,
-        setup.contact,
-        SQPSettings(plane_damping=False),
-        previous=damped.contacts,
+    plain = (
+        PunctureLevel(
+            patch,
+            K,
+            damped.q,
+            load,
+            0.5,
+            setup.contact,
+            SQPSettings(plane_damping=False),
+            previous=damped.contacts,
+        )
+        .iterate()
+        .unwrap()
     )
     assert plain.iterations <= 2
     assert plain.F == pytest.approx(damped.F, rel=1e-8)
@@ -86,15 +93,15 @@ def test_dart_5x5_hinge_vertex_converges_at_every_level(monkeypatch):
     # plain (undamped) iteration re-solving the failure state, to 1e-8 relative; the CVXPY backend
     # along the same path, to 1e-6 (its QPs are answered to the same 1e-9 KKT tolerance).
     failures: list[str] = []
-    level = continuation.solve_level
+    level = PunctureLevel.solve
 
-    def counted(*args, **kw):
-        out = level(*args, **kw)
+    def counted(self):
+        out = level(self)
         if not out.converged:
             failures.append(str(out.failure))
         return out
 
-    monkeypatch.setattr(continuation, "solve_level", counted)
+    monkeypatch.setattr(PunctureLevel, "solve", counted)
     damped = SQPSettings(plane_damping=True)
     design = Design(shape="dart", slant_deg=60.0, rings=2)
     setup = PunctureSetup(design=design, load_point=HINGE_VERTEX, probe=False, sqp=damped)
@@ -105,15 +112,19 @@ def test_dart_5x5_hinge_vertex_converges_at_every_level(monkeypatch):
     patch, K = build_model(setup)
     assert penetration(patch, final.q) <= setup.sqp.penetration_tol
     load = LoadPoint(0, np.array([*HINGE_VERTEX, patch.design.thickness]))
-    plain = solve_equilibrium(
-        patch,
-        K,
-        final.q,
-        load,
-        final.delta,
-        ContactSettings(),
-        SQPSettings(plane_damping=False),
-        previous=final.contacts,
+    plain = (
+        PunctureLevel(
+            patch,
+            K,
+            final.q,
+            load,
+            final.delta,
+            ContactSettings(),
+            SQPSettings(plane_damping=False),
+            previous=final.contacts,
+        )
+        .iterate()
+        .unwrap()
     )
     assert plain.F == pytest.approx(result.Fc_star, rel=1e-8)
     if "cvxpy" in available_solvers():
