@@ -527,6 +527,7 @@ def puncture(
         "candidates": [c.to_dict() for c in result.candidates],
         "branch": result.branch.to_dict(),
         "events": [e.to_dict() for e in result.events],
+        "Fc_check": result.Fc_check.to_dict() if result.Fc_check is not None else None,
     }
     if modulus is not None:
         from .units import force_from_star

@@ -40,6 +40,7 @@ from .events import Branch, ContactChange, Event, Failure, Rescue, Snap
 from .geometry import tilt
 from .increment import STEP_TOL, Equilibrium, LevelOutcome, LoadPoint, PunctureLevel, SQPSettings
 from .penalty import PenaltySettings, penalty_level
+from .qp import IncrementQP
 from .stability import Stability, second_variation
 from .tiling import Patch
 
@@ -110,6 +111,23 @@ class SQPLevels:
             start.contacts,
             self.mirror,
         ).solve()
+
+    def increment_qp(self, state: Equilibrium) -> IncrementQP:
+        """The increment QP linearised at a converged ``state`` (``PunctureLevel.increment_qp``)."""
+        settings, rows = self.sqp(), state.contacts
+        at = PunctureLevel(
+            self.patch,
+            self.K,
+            state.q,
+            self.load,
+            state.delta,
+            self.contact,
+            settings,
+            None,
+            rows,
+            self.mirror,
+        )
+        return at.increment_qp()
 
     def sqp(self, descent: bool = False) -> SQPSettings:
         """The SQP settings of a level: the plain iteration for a landing (``descent``), and no

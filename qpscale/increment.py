@@ -349,6 +349,11 @@ class PunctureLevel:
         """
         return level.solve(_SequentialQP(self), self.q0, self.previous)
 
+    def increment_qp(self) -> IncrementQP:
+        """The increment QP (4) linearised at ``q0`` with the rows of ``previous``: at a converged
+        state its solution is dq ~ 0, and its exact solution checks the state (``certify``)."""
+        return _SequentialQP(self).linearise(self.q0, self.previous, None)[1]
+
     def solve(self) -> LevelOutcome[Equilibrium]:
         """The level under the declared rescue policy (sec. 5, ``events.LEVEL_RESCUES``).
 

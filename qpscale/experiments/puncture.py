@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from ..certify import ForceCheck, check_force
 from ..contact import ContactSettings
 from ..contact.symmetry import Mirror, map_dofs
 from ..continuation import (
@@ -31,7 +32,7 @@ from ..continuation import (
     StateFunctions,
     unloaded,
 )
-from ..errors import InvalidDesign
+from ..errors import InvalidDesign, SolverFailure
 from ..events import Event
 from ..geometry import tilt
 from ..increment import Equilibrium, LoadPoint, SQPSettings
@@ -160,6 +161,9 @@ class PunctureResult:
         ``delta_branch``, ``followed``).
     candidates : list of Candidate
         Every load point tried, with its F_c* and its branch record.
+    Fc_check : ForceCheck or None
+        F_c* against the exact active-set solution of the QP at the failure state
+        (``qpscale.certify``); None for the penalty baseline and for a scale without contact.
     """
 
     setup: PunctureSetup
@@ -172,6 +176,7 @@ class PunctureResult:
     wall_s: float
     qp_solves: int
     candidates: list[Candidate] = field(default_factory=list)
+    Fc_check: ForceCheck | None = None
 
     @property
     def w_star(self) -> np.ndarray:
@@ -251,7 +256,7 @@ def puncture_path(
 
 def _one_point(
     setup: PunctureSetup, patch: Patch, K: sp.csc_matrix, xy: np.ndarray
-) -> tuple[list[Equilibrium], list[Event], int, BranchRecord]:
+) -> tuple[list[Equilibrium], list[Event], int, BranchRecord, LevelSolver]:
     """The path of one load point and what its stability check found (sec. 4)."""
     load = _load_point(patch, xy)
     check = setup.probe and _checkable(setup)
@@ -259,13 +264,13 @@ def _one_point(
     if mirror is None:
         path = puncture_path(setup, patch, K, load, check=check)
         states = path.run()
-        return states, path.events, path.solves, BranchRecord.of_events(path.events, check)
+        return states, path.events, path.solves, BranchRecord.of_events(path.events, check), path.level
     return _symmetric_point(setup, patch, K, load, xy, mirror)
 
 
 def _symmetric_point(
     setup: PunctureSetup, patch: Patch, K: sp.csc_matrix, load: LoadPoint, xy: np.ndarray, mirror: tuple
-) -> tuple[list[Equilibrium], list[Event], int, BranchRecord]:
+) -> tuple[list[Equilibrium], list[Event], int, BranchRecord, LevelSolver]:
     """A load point on a mirror line: the symmetric branch, held by constraints, until a state
     fails the second-variation test (located by the path's bisection); the path then continues,
     unconstrained, from the state pushed along the unstable mode to a fixed side."""
@@ -273,7 +278,7 @@ def _symmetric_point(
     sym = puncture_path(setup, patch, K, load, mirror=Mirror.of(patch, M, perm), check=True)
     try:
         states = sym.run()
-        return states, sym.events, sym.solves, BranchRecord("second variation", mirror=True)
+        return states, sym.events, sym.solves, BranchRecord("second variation", mirror=True), sym.level
     except Bifurcation as exc:
         lost = exc
     lo, hi, sv = lost.before[-1], lost.state, lost.stability
@@ -288,7 +293,7 @@ def _symmetric_point(
         followed="asymmetric",
         asymmetry_at_failure=_asymmetry(states[-1].q, M, perm),
     )
-    return states, sym.events + free.events, sym.solves + free.solves, record
+    return states, sym.events + free.events, sym.solves + free.solves, record, free.level
 
 
 def _side(mode: np.ndarray, M: np.ndarray) -> float:
@@ -331,13 +336,14 @@ def _run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None) 
     for xy in points:
         if progress:
             progress(f"load point ({xy[0]:.3f}, {xy[1]:.3f})")
-        states, events, n, record = _one_point(setup, patch, K, xy)
+        states, events, n, record, level = _one_point(setup, patch, K, xy)
         solves += n
         candidates.append(Candidate((float(xy[0]), float(xy[1])), states[-1].F, record))
         if best is None or states[-1].F < best[0][-1].F:
-            best = (states, events, xy, record)
+            best = (states, events, xy, record, level)
     assert best is not None
-    states, events, xy, branch = best
+    states, events, xy, branch, level = best
+    Fc_check = _check_Fc(level, states[-1], patch.n_scales * 5)
     return PunctureResult(
         setup=setup,
         Fc_star=states[-1].F,
@@ -349,7 +355,20 @@ def _run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None) 
         wall_s=time.perf_counter() - t0,
         qp_solves=solves,
         candidates=candidates,
+        Fc_check=Fc_check,
     )
+
+
+def _check_Fc(level: LevelSolver, final: Equilibrium, n_dof: int) -> ForceCheck | None:
+    """F_c against the exact active-set solution of the QP linearised at the failure state
+    (formulations/increment-qp.md sec. 8); None for the penalty baseline, whose force is not a
+    QP's multiplier.  A certified exact answer that disagrees is a failure, never a number."""
+    if not isinstance(level, SQPLevels) or final.contacts is None:
+        return None
+    check = check_force(level.increment_qp(final), final.F, n_dof)
+    if check.status == "disagrees":
+        raise SolverFailure(level.settings.solver, "F_c check failed", None, check.detail)
+    return check
 
 
 def _asymmetry(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> float:

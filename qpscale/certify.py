@@ -1,0 +1,208 @@
+"""The exact solution of one increment QP by a dual active-set method, and the check of F_c.
+
+Implements formulations/increment-qp.md sec. 8.  An interior-point answer passes the absolute
+residual test (7)-(9) of that file, but on a degenerate QP a row 1e-8 apart may still carry a
+force of 1e-5 and pass ``z * s <= tau``, so the answer may be off by more than ``tau``.  Here the
+QP is solved again by DAQP (a dual active-set method: it ends on an active set and solves its
+equality system directly), and the answer is *certified* by our own residuals at round-off
+level: feasible, balanced, and complementary exactly (a force only on a row in contact).  With
+``P`` positive definite such a point is the unique minimiser, whatever the backend.  Its
+multipliers need not be unique (dependent rows); the check reports the range the loading row's
+multiplier, the force F, takes over all of them, by two linear programs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.optimize import linprog
+
+from .qp import IncrementQP
+
+# Certification at round-off: row violation (L), balance (force units, F* = O(1)), and the
+# largest force a row farther than FEASIBLE_TOL from contact may carry.
+FEASIBLE_TOL = 1e-11
+STATIONARY_TOL = 1e-9
+# DAQP's own tolerances, below the certification's (its defaults stop at 1e-6 violation).
+DAQP_TOL = 1e-13
+# HiGHS for the multiplier range: its presolve declared the (feasible: DAQP's multipliers satisfy
+# it) degenerate system infeasible, and its default feasibility tolerance 1e-7 would widen the range.
+LP_OPTIONS = {"presolve": False, "primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10}
+# The force of a converged state and the exact one agree when within this fraction of |F|
+# (the path's F_c is located to 1e-6, formulations/puncture.md sec. 3).
+FORCE_RTOL = 1e-6
+
+
+@dataclass(frozen=True)
+class ExactSolution:
+    """DAQP's answer to an :class:`~qpscale.qp.IncrementQP` and its certificate (sec. 8).
+
+    Attributes
+    ----------
+    certified : bool
+        Feasible to ``FEASIBLE_TOL``, balanced to ``STATIONARY_TOL``, forces only on rows in
+        contact.  False: ``status`` says why (DAQP's exit flag or the residual that failed).
+    x, z, y : ndarray
+        The minimiser and DAQP's multipliers in our sign convention (formulations eq. (2)).
+    active : ndarray of int
+        The inequality rows in contact at ``x``.
+    residuals : dict
+        ``primal``, ``dual``, ``complementarity`` (:meth:`IncrementQP.residuals`) and
+        ``off_contact_force``, the largest force on a row farther than ``FEASIBLE_TOL``.
+    y_range : ndarray (p, 2)
+        Smallest and largest value of each equality multiplier over all balancing non-negative
+        multipliers on ``active`` (one value when the rows are independent).
+    """
+
+    certified: bool
+    status: str
+    x: np.ndarray
+    z: np.ndarray
+    y: np.ndarray
+    active: np.ndarray
+    residuals: dict[str, float]
+    y_range: np.ndarray
+    seconds: float
+
+
+def _rows(qp: IncrementQP) -> tuple[np.ndarray, np.ndarray]:
+    """``(G, A)`` dense."""
+    G, _, A, _ = qp.rows()
+    return G.toarray(), A.toarray()
+
+
+def _multiplier_range(qp: IncrementQP, x: np.ndarray, rows: np.ndarray, slack: float) -> np.ndarray:
+    """Range of each equality multiplier over ``{z >= 0, y : |G_W'z + A'y + Px + q| <= slack}``."""
+    G, A = _rows(qp)
+    B = np.hstack([G[rows].T, A.T])
+    r = -(qp.P @ x + qp.q)
+    k, p = len(rows), qp.m_eq
+    bounds = [(0.0, None)] * k + [(None, None)] * p
+    A_ub, b_ub = np.vstack([B, -B]), np.r_[r + slack, slack - r]
+    out = np.full((p, 2), np.nan)
+    for j in range(p):
+        for col, sign in ((0, 1.0), (1, -1.0)):
+            c = np.zeros(k + p)
+            c[k + j] = sign
+            res = linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs", options=LP_OPTIONS)
+            if res.status == 0:
+                out[j, col] = res.x[k + j]
+    return out
+
+
+def solve_exact(qp: IncrementQP) -> ExactSolution:
+    """``qp`` solved by DAQP's dual active-set method and certified by our residuals (sec. 8).
+
+    Examples
+    --------
+    >>> import numpy as np, scipy.sparse as sp
+    >>> qp = IncrementQP(P=sp.identity(2, format="csc"), q=np.array([-1.0, 0.0]),
+    ...                  G=sp.csc_matrix([[1.0, 0.0]]), h=np.array([0.5]),
+    ...                  A=sp.csc_matrix([[0.0, 1.0]]), b=np.array([2.0]))
+    >>> ex = solve_exact(qp)
+    >>> ex.certified, ex.x.round(12).tolist(), ex.z.round(12).tolist(), ex.y.round(12).tolist()
+    (True, [0.5, 2.0], [0.5], [-2.0])
+    """
+    import daqp  # imported here: only the check uses it
+
+    t0 = time.perf_counter()
+    p, m = qp.m_eq, qp.m_ineq
+    G, A = _rows(qp)
+    M = np.vstack([A, G])
+    upper = np.r_[qp.b, qp.h]
+    lower = np.r_[qp.b, np.full(m, -1e30)]
+    sense = np.r_[np.full(p, 5), np.zeros(m)].astype(np.intc)  # 5: an equality row, 0: an inequality
+    x, _, flag, info = daqp.solve(
+        qp.P.toarray(),
+        qp.q,
+        M,
+        upper,
+        lower,
+        sense,
+        primal_tol=DAQP_TOL,
+        dual_tol=DAQP_TOL,
+        iter_limit=100 * (qp.n + p + m),
+    )
+    x = np.asarray(x, dtype=float)
+    lam = np.asarray(info["lam"], dtype=float)
+    y, z = lam[:p], lam[p:]
+    slack = qp.h - G @ x
+    active = np.flatnonzero(slack <= FEASIBLE_TOL)
+    residuals = qp.residuals(x, z, y)
+    far = np.ones(m, dtype=bool)
+    far[active] = False
+    residuals["off_contact_force"] = float(np.abs(z[far]).max(initial=0.0))
+    if flag != 1:
+        status = f"daqp exit flag {flag}"
+    elif residuals["primal"] > FEASIBLE_TOL:
+        status = f"primal residual {residuals['primal']:.3g}"
+    elif residuals["dual"] > STATIONARY_TOL:
+        status = f"dual residual {residuals['dual']:.3g}"
+    elif residuals["off_contact_force"] > STATIONARY_TOL:
+        status = f"force {residuals['off_contact_force']:.3g} on a row not in contact"
+    else:
+        status = "certified"
+    certified = status == "certified"
+    y_range = _multiplier_range(qp, x, active, 10.0 * max(residuals["dual"], 1e-12)) if certified else None
+    return ExactSolution(
+        certified,
+        status,
+        x,
+        z,
+        y,
+        active,
+        residuals,
+        y_range if y_range is not None else np.full((p, 2), np.nan),
+        time.perf_counter() - t0,
+    )
+
+
+@dataclass(frozen=True)
+class ForceCheck:
+    """A converged state's force against the exact solution of the QP linearised at it.
+
+    ``status``: ``verified`` (the state's F lies within ``FORCE_RTOL |F|`` of the exact range),
+    ``disagrees`` (certified, and outside it: the state's force is wrong), or ``unverified``
+    (no certificate; ``detail`` says why).  ``dq_exact`` is the largest DOF increment of the exact
+    solution: a converged state is the QP's fixed point, so it is below the step tolerance.
+    """
+
+    status: str
+    F: float
+    F_exact: tuple[float, float]
+    dq_exact: float
+    active_rows: int
+    seconds: float
+    detail: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object ``Fc_check`` of ``qpscale puncture --json`` (docs/cli.md)."""
+        return {
+            "status": self.status,
+            "F": self.F,
+            "F_exact": list(self.F_exact),
+            "dq_exact": self.dq_exact,
+            "active_rows": self.active_rows,
+            "seconds": self.seconds,
+            "detail": self.detail,
+        }
+
+
+def check_force(qp: IncrementQP, F: float, n_dof: int) -> ForceCheck:
+    """Check the force ``F`` of a converged state against the exact solution of ``qp``, the
+    increment QP linearised at that state (its loading row first, ``n_dof`` DOF unknowns first)."""
+    ex = solve_exact(qp)
+    dq = float(np.abs(ex.x[:n_dof]).max(initial=0.0))
+    lo, hi = (float(v) for v in ex.y_range[0])
+    if not ex.certified:
+        return ForceCheck("unverified", F, (lo, hi), dq, len(ex.active), ex.seconds, ex.status)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        why = "multiplier range LP failed"
+        return ForceCheck("unverified", F, (lo, hi), dq, len(ex.active), ex.seconds, why)
+    tol = FORCE_RTOL * max(abs(F), 1e-12)
+    verdict = "verified" if lo - tol <= F <= hi + tol else "disagrees"
+    detail = f"exact F in [{lo:.12g}, {hi:.12g}], state's F {F:.12g}"
+    return ForceCheck(verdict, F, (lo, hi), dq, len(ex.active), ex.seconds, detail)
