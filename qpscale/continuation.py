@@ -33,12 +33,13 @@ from typing import Any, Protocol
 import numpy as np
 import scipy.sparse as sp
 
-from .contact import ContactSettings
+from .contact import ContactSet, ContactSettings
 from .contact.symmetry import Mirror
 from .errors import SolverFailure
 from .events import Branch, ContactChange, Event, Failure, Rescue, Snap
 from .geometry import tilt
 from .increment import STEP_TOL, Equilibrium, LevelOutcome, LoadPoint, PunctureLevel, SQPSettings
+from .multipliers import uniform_second_variation
 from .penalty import PenaltySettings, penalty_level
 from .qp import IncrementQP
 from .stability import Stability, second_variation
@@ -112,8 +113,9 @@ class SQPLevels:
             self.mirror,
         ).solve()
 
-    def increment_qp(self, state: Equilibrium) -> IncrementQP:
-        """The increment QP linearised at a converged ``state`` (``PunctureLevel.increment_qp``)."""
+    def increment_qp(self, state: Equilibrium) -> tuple[IncrementQP, ContactSet | None]:
+        """The increment QP linearised at a converged ``state`` and its contact set
+        (``PunctureLevel.increment_qp``)."""
         settings, rows = self.sqp(), state.contacts
         at = PunctureLevel(
             self.patch,
@@ -189,10 +191,19 @@ class StateFunctions:
     stability: Callable[[Equilibrium], Stability]
 
     @classmethod
-    def of_point_load(cls, patch: Patch, K: sp.csc_matrix, load: LoadPoint) -> StateFunctions:
+    def of_point_load(
+        cls, patch: Patch, K: sp.csc_matrix, load: LoadPoint, levels: SQPLevels | None = None
+    ) -> StateFunctions:
         """The quadratic substrate energy 1/2 q'Kq, the tilt of the loaded scale's top face
         (geometry.md eq. 3) and the second variation of ``stability.second_variation`` with the
-        path's tolerance ``STABILITY_TOL``."""
+        path's tolerance ``STABILITY_TOL``.
+
+        With ``levels`` (the path's sequential-QP levels, whose contact forces need not be
+        unique) a state that the state's own multipliers call unstable is decided over the whole
+        multiplier set (``multipliers.uniform_second_variation``, stability.md sec. 7): the
+        verdict then does not depend on which point of the set the backend returned.  A state
+        they call stable is stable over the set too (its value is at least theirs).
+        """
 
         def energy(eq: Equilibrium) -> float:
             x = eq.q.ravel()
@@ -205,7 +216,11 @@ class StateFunctions:
             return tilt(eq.q[load.scale, 3:5])
 
         def stability(eq: Equilibrium) -> Stability:
-            return second_variation(patch, K, eq, load, tol=STABILITY_TOL)
+            own = second_variation(patch, K, eq, load, tol=STABILITY_TOL)
+            if own.stable or levels is None or eq.contacts is None or not len(eq.lam):
+                return own
+            qp, rows = levels.increment_qp(eq)
+            return uniform_second_variation(patch, K, replace(eq, contacts=rows), load, qp, STABILITY_TOL)
 
         return cls(energy, force_norm, tilt_of, stability)
 

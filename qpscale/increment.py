@@ -349,10 +349,15 @@ class PunctureLevel:
         """
         return level.solve(_SequentialQP(self), self.q0, self.previous)
 
-    def increment_qp(self) -> IncrementQP:
-        """The increment QP (4) linearised at ``q0`` with the rows of ``previous``: at a converged
-        state its solution is dq ~ 0, and its exact solution checks the state (``certify``)."""
-        return _SequentialQP(self).linearise(self.q0, self.previous, None)[1]
+    def increment_qp(self) -> tuple[IncrementQP, ContactSet | None]:
+        """The increment QP (4) linearised at ``q0`` with the rows of ``previous``, and its contact
+        set (its planes as they are, the memory the second variation reads).  At a converged
+        state the QP's solution is dq ~ 0: its exact solution checks the state (``certify``) and
+        its multiplier set decides the state's stability (``multipliers``)."""
+        _, qp, cs = _SequentialQP(self).linearise(self.q0, self.previous, None)
+        if cs is not None and cs.planes is not None:
+            cs = replace(cs, plane_memory=cs.planes.advanced(np.zeros(3 * cs.planes.count)))
+        return qp, cs
 
     def solve(self) -> LevelOutcome[Equilibrium]:
         """The level under the declared rescue policy (sec. 5, ``events.LEVEL_RESCUES``).

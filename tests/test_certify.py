@@ -83,6 +83,6 @@ def test_a_wrong_force_is_caught(corner_3x3):
     setup, final = corner_3x3.setup, corner_3x3.states[-1]
     patch, K = build_model(setup)
     level = SQPLevels(patch, K, _load_point(patch, (0.5, 0.5)), setup.contact, setup.sqp)
-    qp = level.increment_qp(final)
+    qp = level.increment_qp(final)[0]
     assert check_force(qp, final.F, patch.n_scales * 5).status == "verified"
     assert check_force(qp, final.F * (1 + 1e-5), patch.n_scales * 5).status == "disagrees"

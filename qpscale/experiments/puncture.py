@@ -250,7 +250,7 @@ def puncture_path(
         # feature rows' sticky axis and the penalty dissipate ~1e-3 of the work).
         conservative=_checkable(setup),
     )
-    functions = StateFunctions.of_point_load(patch, K, load)
+    functions = StateFunctions.of_point_load(patch, K, load, level if isinstance(level, SQPLevels) else None)
     return Path(level, functions, settings, unloaded(patch.n_scales), mirror=mirror)
 
 
@@ -365,7 +365,7 @@ def _check_Fc(level: LevelSolver, final: Equilibrium, n_dof: int) -> ForceCheck 
     QP's multiplier.  A certified exact answer that disagrees is a failure, never a number."""
     if not isinstance(level, SQPLevels) or final.contacts is None:
         return None
-    check = check_force(level.increment_qp(final), final.F, n_dof)
+    check = check_force(level.increment_qp(final)[0], final.F, n_dof)
     if check.status == "disagrees":
         raise SolverFailure(level.settings.solver, "F_c check failed", None, check.detail)
     return check

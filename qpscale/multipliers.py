@@ -1,0 +1,233 @@
+"""The multiplier set of a degenerate converged state, and the stability verdict over all of it.
+
+Implements formulations/stability.md sec. 7.  Where the rows in contact are dependent (a face
+on a face, hinged planes, mirror images), the contact forces that balance a state form a
+polytope, and the second variation (stability.md eq. (4)) read with one point of it depends on
+which point the backend returned: an interior point's and an active-set method's verdicts on
+the same configuration differ.  The verdict used here does not depend on that choice:
+
+    mu* = max over (lam, F) in the multiplier set of lambda_min(Z' H(lam, F) Z) / max K_ii,
+
+with Z the directions that keep every row that can carry force (for some point of the set) and
+the load at zero.  H is affine in (lam, F), so mu* is a concave maximisation: a small
+semidefinite program, solved by Clarabel's PSD cone.  A state is stable when mu* > -tol (the
+second-order sufficient condition with a multiplier set), and mu* is at least the value any one
+point of the set gives, so a state the backend's multipliers call stable is stable here too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import linprog, nnls
+
+from .certify import LP_OPTIONS
+from .errors import SolverFailure
+from .increment import Equilibrium, LoadPoint
+from .qp import IncrementQP
+from .stability import Stability, _hessian, _lifted, _null_space, _row_hessians, rotated_point_derivatives
+from .tiling import Patch
+
+# Rows this far from contact (L) at the state may carry force: a converged state's gaps are its
+# QP's answer's, and an interior point leaves forces on rows up to ~7e-6 L apart (measured).
+NEAR = 1e-5
+# A row is in the support when some member gives it this fraction of the force scale, and NOISE
+# times the state's imbalance (rows 6 and 19 of the 3x3 corner path's last held state reach only
+# 1e-8..3e-8 against an imbalance of 1.2e-8: noise, and they came and went with the scale).
+SUPPORT = 1e-8
+NOISE = 100.0
+# The forces of the set's members are bounded by BOX times the force scale (a self-stress is a
+# ray of the set); the cutting planes stop at MAX_CUTS or when their bounds are GAP apart.
+BOX = 10.0
+MAX_CUTS = 200
+GAP = 1e-10
+
+
+@dataclass(frozen=True)
+class MultiplierSet:
+    """The forces that balance a converged state as well as any can (stability.md sec. 7):
+    ``{(lam, F) = (lam0, F0) + kernel u : lam >= 0}`` on ``rows``.
+
+    ``rows`` are the QP's inequality rows (the contact set's rows) that carry force in some
+    member (the support of the set's relative interior); ``B = [G_rows', a]`` (``a`` the loading
+    row), ``kernel`` a basis of its null space, ``(lam0, F0)`` a member positive on every row,
+    ``residual`` the largest entry of ``B [lam; F] + P 0 + q``, the same for every member.
+    """
+
+    rows: np.ndarray
+    B: np.ndarray
+    kernel: np.ndarray
+    lam: np.ndarray
+    F: float
+    residual: float
+
+
+def _support_lp(w0: np.ndarray, ker: np.ndarray, k: int, rows: np.ndarray, cap: float, bound: float):
+    """``max sum_{i in rows} min(lam_i, cap)`` over ``lam = (w0 + ker u)[:k] >= 0``, ``lam <= bound``:
+    unknowns (u, t); returns the member ``w0 + ker u`` or None."""
+    nu, m = ker.shape[1], len(rows)
+    K_lam = ker[:k]
+    c = np.r_[np.zeros(nu), -np.ones(m)]
+    pick = np.hstack([-ker[rows], np.eye(m)])  # t_i - (ker u)_i <= w0_i
+    A_ub = np.vstack([np.hstack([-K_lam, np.zeros((k, m))]), np.hstack([K_lam, np.zeros((k, m))]), pick])
+    b_ub = np.r_[w0[:k], bound - w0[:k], w0[rows]]
+    res = linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * nu + [(0.0, cap)] * m, method="highs")
+    return w0 + ker @ res.x[:nu] if res.status == 0 else None
+
+
+def multiplier_set(qp: IncrementQP, force_scale: float) -> MultiplierSet:
+    """The multiplier set of the converged state ``qp`` is linearised at, and the rows it can load.
+
+    It is read at the state itself (``x = 0``: a converged state is its QP's fixed point), not
+    at a backend's answer: the hinged planes' unknowns of two answers differ by up to 1e-3 (only
+    their proximal weight fixes them), which moves rows in and out of contact; the state does not
+    depend on the backend.  A state balances only to its step tolerance: the best balance is a
+    non-negative least-squares fit ``w0`` (``lam >= 0``), and the set is ``w0`` plus the null space of
+    ``B``, whose members all balance exactly as well.  The loading row is the QP's first
+    equality; the other equalities (rows that hold a symmetric path) get no multiplier: at a
+    converged held state theirs vanish (contact.md eq. (28)), and a free one would balance what
+    the contact must.  The support (rows positive in some member) is found by linear programs
+    that maximise ``sum min(lam_i, cap)`` over the rows not yet found, until none is found: it
+    is unique, whatever the cap.
+    """
+    G, h, A, _ = qp.rows()
+    near = np.flatnonzero(h <= NEAR)
+    a = A[0].toarray().ravel()
+    B = np.hstack([G[near].T.toarray(), a[:, None]])
+    r = -np.asarray(qp.q)
+    k = len(near)
+    # Lawson-Hanson with the free load multiplier split in two (45x faster than BVLS here)
+    x, _ = nnls(np.hstack([B, -a[:, None]]), r, maxiter=50 * (k + 2))
+    w0 = np.r_[x[:k], x[k] - x[k + 1]]
+    residual = float(np.abs(B @ w0 - r).max(initial=0.0))
+    scale = max(force_scale, float(np.max(w0[:k], initial=0.0)), 1e-12)
+    # a force no larger than the state's own imbalance is noise, not support
+    tol, cap, bound = max(SUPPORT * scale, NOISE * residual), 1e-3 * scale, BOX * scale
+    ker = _null_space(B)
+    members = [w0]
+    found = w0[:k] > tol
+    while ker.shape[1] and not found.all():
+        rest = np.flatnonzero(~found)
+        w = _support_lp(w0, ker, k, rest, cap, bound)
+        if w is None:
+            raise SolverFailure("stability", "multiplier set LP failed", detail="uniform second variation")
+        new = rest[w[rest] > tol]
+        if not len(new):
+            break
+        members.append(w)
+        found[new] = True
+    lam0 = np.mean(members, axis=0)
+    keep = np.flatnonzero(found)
+    cols = np.r_[keep, k]
+    B_w = B[:, cols]
+    return MultiplierSet(near[keep], B_w, _null_space(B_w), lam0[keep], float(lam0[k]), residual)
+
+
+def _maximise_smallest_eigenvalue(
+    base: np.ndarray, dirs: np.ndarray, lam0: np.ndarray, N: np.ndarray, bound: float, tol: float
+) -> np.ndarray:
+    """``u`` maximising ``mu(u) = lambda_min(base + sum_j u_j dirs_j)`` over ``lam0 + N u >= 0``,
+    ``|lam0 + N u| <= bound``, by Kelley's cutting planes: ``mu(u) <= mu(u_i) + g_i'(u - u_i)``
+    with the subgradient ``g_ij = v_i' dirs_j v_i`` (``v_i`` the eigenvector).  Stops when the
+    best value exceeds ``-tol`` (stable), the model's bound falls below it (unstable), or the
+    two are within ``GAP``; the best ``u`` found is returned."""
+    nu = len(dirs)
+    if nu == 0:  # one member: nothing to choose
+        return np.zeros(0)
+
+    def value(u: np.ndarray) -> tuple[float, np.ndarray]:
+        vals, vecs = np.linalg.eigh(base + np.tensordot(u, dirs, axes=1))
+        v = vecs[:, 0]
+        return float(vals[0]), np.einsum("i,jik,k->j", v, dirs, v)
+
+    u = np.zeros(nu)
+    best, g = value(u)
+    if best > -tol:
+        return u
+    best_u, cuts = u, [(best, g, u)]
+    # LP in (u, theta): max theta, theta - g_i'u <= f_i - g_i'u_i, -N u <= lam0, N u <= bound - lam0
+    for _ in range(MAX_CUTS):
+        model = np.array([np.r_[-gi, 1.0] for fi, gi, ui in cuts])
+        levels = [fi - gi @ ui for fi, gi, ui in cuts]
+        box = np.zeros((len(N), 1))
+        A_ub = np.vstack([model, np.hstack([-N, box]), np.hstack([N, box])])
+        b_ub = np.r_[levels, lam0, bound - lam0]
+        res = linprog(
+            np.r_[np.zeros(nu), -1.0],
+            A_ub=A_ub,
+            b_ub=b_ub,
+            bounds=[(None, None)] * (nu + 1),
+            method="highs",
+            options=LP_OPTIONS,
+        )
+        if res.status != 0:
+            break
+        u, upper = res.x[:nu], float(res.x[nu])
+        f, g = value(u)
+        if f > best:
+            best, best_u = f, u
+        if best > -tol or upper < -tol or upper - best <= GAP:
+            break
+        cuts.append((f, g, u))
+    return best_u
+
+
+def uniform_second_variation(
+    patch: Patch, K, eq: Equilibrium, load: LoadPoint, qp: IncrementQP, tol: float
+) -> Stability:
+    """The stability verdict over the whole multiplier set (stability.md sec. 7).
+
+    ``qp`` is the increment QP linearised at ``eq`` and ``eq.contacts`` its contact set
+    (``SQPLevels.increment_qp``); no backend's answer is read.
+    """
+    force_scale = max(float(np.max(eq.lam, initial=0.0)), abs(eq.F))
+    ms = multiplier_set(qp, force_scale)
+    indicator = np.zeros(qp.m_ineq)
+    indicator[ms.rows] = 1.0
+    lifted = _lifted(patch, replace(eq, lam=indicator, F=0.0), load)
+    if not np.array_equal(lifted.rows, ms.rows):
+        raise SolverFailure(
+            "stability", "multiplier rows are not plane rows", detail="uniform second variation"
+        )
+    n, N = patch.n_scales, lifted.size
+    C = np.vstack([lifted.jacobian(lifted.z0), np.r_[load.gradient(eq.q), np.zeros(N - 5 * n)]])
+    Z = _null_space(C)
+    scale = float(np.max(K.diagonal()))
+    d = Z.shape[1]
+    if d == 0:
+        return Stability(np.inf, True, np.zeros((n, 5)), len(ms.rows))
+    lifted.lam = np.zeros(len(ms.rows))
+    H0 = _hessian(lifted, K)  # K, the plane weight; no contact or load term (lam = F = 0)
+    q = lifted.z0[: 5 * n].reshape(n, 5)
+    s = np.r_[lifted.scale, load.scale]
+    rr, dr, ddr = rotated_point_derivatives(q[s, 3:5], np.vstack([lifted.X, np.reshape(load.X, (1, 3))]))
+    h, idx = _row_hessians(lifted, lifted.z0, rr[:-1], dr[:-1], ddr[:-1])
+    ij = 5 * load.scale + np.arange(3, 5)
+    # Reduced pieces: H(lam, F) = H0 - sum lam_i h_i + F h_w, each as Z'(.)Z / scale.
+    M0 = Z.T @ H0 @ Z / scale
+    Mi = np.einsum("rak,rab,rbl->rkl", Z[idx], h, Z[idx]) / scale
+    Mw = Z[ij].T @ ddr[-1, :, :, 2] @ Z[ij] / scale
+    Mw = 0.5 * (Mw + Mw.T)
+    Mi = 0.5 * (Mi + Mi.transpose(0, 2, 1))
+    # The members: (lam, F) = (lam0, F0) + N u, N a basis of ker B (the balance is kept exactly;
+    # the set's thickness eps only admits the state's own imbalance).  mu(u), the smallest
+    # eigenvalue of M(lam, F), is concave in u; it is maximised over lam0 + N_lam u >= 0 (and a
+    # box of BOX times the force scale on every force, since a self-stress is a ray of the set) by
+    # cutting planes, which bound mu* from above as well as from below and stop once the verdict
+    # is decided (or the bounds meet).
+    k = len(ms.rows)
+    ker = ms.kernel
+    base = M0 - np.einsum("r,rkl->kl", ms.lam, Mi) + ms.F * Mw
+    dirs = np.array([-np.einsum("r,rkl->kl", ker[:k, j], Mi) + ker[k, j] * Mw for j in range(ker.shape[1])])
+    u = _maximise_smallest_eigenvalue(base, dirs, ms.lam, ker[:k], force_scale * BOX, tol)
+    w = np.r_[ms.lam, ms.F] + ker @ u
+    lam, F = w[:k], w[k]
+    Mstar = M0 - np.einsum("r,rkl->kl", lam, Mi) + F * Mw
+    vals, vecs = np.linalg.eigh(0.5 * (Mstar + Mstar.T))
+    mu = float(vals[0])
+    mode = (Z @ vecs[:, 0])[: 5 * n].reshape(n, 5)
+    big = np.max(np.abs(mode))
+    if big > 0:
+        mode = mode / (big * np.sign(mode.ravel()[np.argmax(np.abs(mode))]))
+    return Stability(mu, mu > -tol, mode, k)
