@@ -141,3 +141,43 @@ def test_cli_sweep_on_a_scheduler_prints_the_documented_json(scheduler, tmp_path
     again = json.loads(CliRunner().invoke(app, args).stdout)
     assert (again["n_run"], again["n_skipped"]) == (0, 2)
     assert len(pd.read_parquet(out)) == 2
+
+
+def _blas_threads() -> list[int]:
+    import numpy  # noqa: F401 - loads its BLAS, so that threadpoolctl sees it
+    from threadpoolctl import threadpool_info
+
+    return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+
+def test_engine_starts_its_own_loopback_cluster_with_one_blas_thread_per_task():
+    from qpscale.studies.engine import bokeh_installed
+
+    with Engine(2) as engine:
+        line = engine.describe()
+        assert engine.client.scheduler.address.startswith("tcp://127.0.0.1:")
+        threads = engine.map(_blas_threads, [()] * 2)
+    assert line.startswith("engine: local Dask cluster, 2 worker processes")
+    assert (
+        ("dashboard http://127.0.0.1:" in line) if bokeh_installed() else ("bokeh is not installed" in line)
+    )
+    assert all(t and set(t) == {1} for t in threads), threads
+    assert engine.client is None and engine.cluster is None  # closed on exit
+
+
+def test_paper_scenes_run_on_the_scheduler_as_in_this_process(scheduler):
+    # qpscale paper --scheduler: the same rows as the serial run (1e-12: deterministic, one BLAS
+    # thread in both).
+    from qpscale.studies.paper import run_scenes
+    from qpscale.studies.paper_scenes import Scene
+
+    scenes = [
+        Scene("isolated", "puncture", "square", rings=0, increments=4),
+        Scene("isolated", "puncture", "hexagon", rings=0, increments=4),
+    ]
+    with Engine(scheduler=scheduler) as engine:
+        rows, data = run_scenes(scenes, engine=engine)
+    serial, _ = run_scenes(scenes, workers=1)
+    assert [r["status"] for r in rows] == ["ok", "ok"] and set(data) == {s.key for s in scenes}
+    for r, s in zip(rows, serial):
+        assert r["Fc_star"] == pytest.approx(s["Fc_star"], rel=1e-12)

@@ -157,6 +157,7 @@ class ResultTable:
         self._dirty = False
         self._load()
         self.write()
+        self._write_s = 0.0  # that first rewrite also imported pyarrow: no measure of the next ones
 
     def _load(self) -> None:
         import pandas as pd
