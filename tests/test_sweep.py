@@ -221,3 +221,14 @@ def test_flexure_sweep_rows_equal_the_api_runs(tmp_path):
         serial = api.flexure(**{k: x for k, x in p.items() if k != "mode"}, isolated=True)
         # Same code, same input, same process: equal to round-off (1e-9 relative).
         assert table.loc[point.key, "Cf_star"] == pytest.approx(serial.Cf_star, rel=1e-9)
+
+
+def test_an_output_that_is_not_a_sweep_table_is_refused(tmp_path):
+    other = tmp_path / "other.parquet"
+    pd.DataFrame({"x": [1.0]}).to_parquet(other)
+    broken = tmp_path / "broken.parquet"
+    broken.write_bytes(b"not parquet")
+    for path, detail in ((other, "no column 'key'"), (broken, "a table written by qpscale sweep")):
+        with pytest.raises(InvalidDesign, match=detail) as info:
+            ResultTable(path)
+        assert info.value.parameter == "out"

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..errors import QpscaleError, SolverFailure
+from ..errors import InvalidDesign, QpscaleError, SolverFailure
 from ..timelimit import TimeLimitReached, time_limit
 from .engine import Engine
 from .sweep import DesignPoint, SweepSpec
@@ -163,7 +163,16 @@ class ResultTable:
         import pandas as pd
 
         if self.path.exists():
-            table = pd.read_parquet(self.path)
+            try:
+                table = pd.read_parquet(self.path)
+            except (OSError, ValueError) as exc:
+                raise InvalidDesign(
+                    "out", str(self.path), "a table written by qpscale sweep", str(exc)
+                ) from None
+            if "key" not in table:
+                raise InvalidDesign(
+                    "out", str(self.path), "a table written by qpscale sweep", "it has no column 'key'"
+                )
             for row in table.to_dict("records"):
                 self.rows[str(row["key"])] = {k: _cell(x) for k, x in row.items()}
         if self.journal.exists():
