@@ -799,7 +799,7 @@ def sweep(
 
     if scheduler is not None and workers is not None:
         raise v.conflict("scheduler", "workers", "the cluster at --scheduler has its own workers")
-    n_workers = check_workers(os.cpu_count() or 1 if workers is None else workers)
+    n_workers = check_workers((os.cpu_count() or 1) if workers is None else workers)
     spec = load_spec(grid)
     out_file = v.output_file("out", out)
     if out_file.suffix.lower() != ".parquet":
