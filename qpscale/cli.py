@@ -607,9 +607,8 @@ def paper(
         raise v.conflict("smoke", "quick", "--smoke is a subset of the quick study: give --quick too")
     out_dir = v.output_dir("out", out)
     scenes = smoke_scenes() if smoke else paper_scenes(quick)
-    engine = Engine(min(n_workers, os.cpu_count() or 1), scheduler)
-    with engine, _progress("paper") as bar, terminate_as_interrupt():
-        _print_info(engine.describe())
+    engine = Engine(min(n_workers, os.cpu_count() or 1), scheduler, announce=_print_info)
+    with terminate_as_interrupt(), _progress("paper") as bar:
         task = bar.add_task(f"paper: 0/{len(scenes)} scenes", total=len(scenes))
 
         def step(scene: Any, row: dict[str, Any]) -> None:
@@ -620,9 +619,10 @@ def paper(
             )
 
         try:
-            result = run_paper(
-                out_dir, quick=quick, progress=step, scenes=scenes, scene_limit_s=limit, engine=engine
-            )
+            with engine:
+                result = run_paper(
+                    out_dir, quick=quick, progress=step, scenes=scenes, scene_limit_s=limit, engine=engine
+                )
         except KeyboardInterrupt as exc:
             what = "terminated" if isinstance(exc, _Terminated) else "interrupted"
             _print_error(
@@ -804,9 +804,8 @@ def sweep(
     out_file = v.output_file("out", out)
     if out_file.suffix.lower() != ".parquet":
         raise InvalidDesign("out", str(out_file), "a .parquet file")
-    engine = Engine(n_workers, scheduler, local_cluster=True)
-    with engine, _bar("sweep") as bar, terminate_as_interrupt():
-        _print_info(engine.describe())
+    engine = Engine(n_workers, scheduler, local_cluster=True, announce=_print_info)
+    with terminate_as_interrupt(), _bar("sweep") as bar:
         task = bar.add_task("sweep", total=None)
 
         def start(todo: int, skipped: int) -> None:
@@ -817,7 +816,8 @@ def sweep(
             bar.update(task, advance=1, description=f"sweep: last {row['status']}")
 
         try:
-            result = run_sweep(spec, out_file, engine, retry_failed, on_start=start, on_done=step)
+            with engine:
+                result = run_sweep(spec, out_file, engine, retry_failed, on_start=start, on_done=step)
         except KeyboardInterrupt as exc:
             what = "terminated" if isinstance(exc, _Terminated) else "interrupted"
             _print_error(
@@ -835,7 +835,7 @@ def sweep(
         "n_failed": len(result.failed),
         "statuses": result.statuses,
         "failed": result.failed,
-        "engine": engine.describe(),
+        "engine": engine.started or engine.describe(),
         "wall_s": result.wall_s,
     }
 

@@ -153,8 +153,11 @@ def _blas_threads() -> list[int]:
 def test_engine_starts_its_own_loopback_cluster_with_one_blas_thread_per_task():
     from qpscale.studies.engine import bokeh_installed
 
-    with Engine(2) as engine:
-        line = engine.describe()
+    lines: list[str] = []
+    with Engine(2, announce=lines.append) as engine:
+        assert engine.client is None  # nothing started before there is work
+        engine.start()
+        (line,) = lines
         assert engine.client.scheduler.address.startswith("tcp://127.0.0.1:")
         threads = engine.map(_blas_threads, [()] * 2)
     assert line.startswith("engine: local Dask cluster, 2 worker processes")

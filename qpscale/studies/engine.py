@@ -15,11 +15,14 @@ the task fails with ``KilledWorker``.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import logging
 import os
+import signal
+import threading
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 from ..errors import InvalidDesign
@@ -54,6 +57,43 @@ def run_task(fn: Callable[..., T], args: tuple[Any, ...]) -> T:
         return fn(*args)
 
 
+def dask_setup(worker: Any) -> None:
+    """Dask's preload hook, run in every worker process of the local cluster as it starts.
+
+    Ctrl-C in a terminal reaches the whole process group: the workers ignore SIGINT and leave it
+    to the parent, which closes the cluster (and with it the workers) instead of each printing a
+    traceback.  Workers started with the cluster have SIGINT blocked from the start
+    (:func:`_starting`); this covers those a nanny starts later, after a worker died.
+    """
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def _starting() -> Iterator[None]:
+    """While the local cluster starts, SIGINT is blocked in this thread and SIGTERM held back.
+
+    Every thread the cluster starts meanwhile (its event loop, the threads that spawn the worker
+    processes) inherits the blocked SIGINT, and so do the worker processes (a signal mask survives
+    ``exec``): a Ctrl-C sent to the whole process group never reaches them, not even while they
+    import.  In this process a Ctrl-C or SIGTERM that comes during the start stays pending and is
+    delivered when the start is over and the cluster assigned, so that the caller's handlers end
+    it cleanly (:meth:`Engine.close`).
+    """
+    main = threading.current_thread() is threading.main_thread()
+    held: list[int] = []
+    old_term = signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum)) if main else None
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C is delivered here
+        if main:
+            signal.signal(signal.SIGTERM, old_term)
+            if held:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+
 def bokeh_installed() -> bool:
     """Whether the Dask dashboard can be served (it is drawn with bokeh, an optional extra)."""
     return importlib.util.find_spec("bokeh") is not None
@@ -62,8 +102,9 @@ def bokeh_installed() -> bool:
 class Engine:
     """Runs tasks here (``workers == 1`` and no ``scheduler``) or on a Dask cluster.
 
-    Use it as a context manager: the local cluster starts on entry and is closed on exit (its
-    worker processes ended, also on Ctrl-C or an exception).
+    Use it as a context manager: the cluster is started (or connected to) when the first tasks
+    come, so that nothing starts for a run with nothing left to do, and it is closed on exit (the
+    local cluster's worker processes ended, also on Ctrl-C or an exception).
 
     Parameters
     ----------
@@ -74,45 +115,79 @@ class Engine:
         ``workers`` is not used.
     local_cluster : bool
         Start a local cluster even for one worker (``qpscale sweep`` always runs on Dask).
+    announce : callable or None
+        Called with :meth:`describe` once the cluster is up (where it runs, the dashboard).
     """
 
-    def __init__(self, workers: int = 1, scheduler: str | None = None, local_cluster: bool = False) -> None:
+    def __init__(
+        self,
+        workers: int = 1,
+        scheduler: str | None = None,
+        local_cluster: bool = False,
+        announce: Callable[[str], None] | None = None,
+    ) -> None:
         self.workers = check_workers(workers)
         if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
             raise InvalidDesign("scheduler", scheduler, "a Dask scheduler address such as tcp://host:8786")
         self.scheduler = scheduler
         self.distributed = scheduler is not None or workers > 1 or local_cluster
+        self.announce = announce
+        self.started: str | None = None  # describe() when the cluster came up (kept after close)
         self.client: Any = None
         self.cluster: Any = None
 
     # -- lifecycle ---------------------------------------------------------------------------
     def __enter__(self) -> Engine:
-        if not self.distributed:
-            return self
-        import dask
-        from distributed import Client, LocalCluster
+        return self
 
+    def start(self) -> None:
+        """Start the local cluster or connect to the scheduler (once; nothing for this process)."""
+        if not self.distributed or self.client is not None:
+            return
+        self._connect()
+        self.started = self.describe()
+        if self.announce is not None:
+            self.announce(self.started)
+
+    def _connect(self) -> None:
         if self.scheduler is not None:
+            from distributed import Client
+
             try:
                 self.client = Client(self.scheduler, timeout="10s", set_as_default=False)
             except (OSError, TimeoutError, ValueError) as exc:
                 raise InvalidDesign(
                     "scheduler", self.scheduler, "the address of a running Dask scheduler", str(exc)
                 ) from None
-            return self
-        with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES}):
-            self.cluster = LocalCluster(
-                n_workers=self.workers,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                # Loopback and a free port: the scheduler's HTTP server always starts (without
-                # bokeh it serves a page saying so), and it must not listen on every interface.
-                dashboard_address="127.0.0.1:0",
-                silence_logs=logging.ERROR,
-            )
-        self.client = Client(self.cluster, set_as_default=False)
-        return self
+            return
+        # multiprocessing starts its resource tracker with SIGINT blocked and then *unblocks* it in
+        # the calling thread, which would undo _starting(): start it first, outside.
+        from multiprocessing import resource_tracker
+
+        resource_tracker.ensure_running()
+        try:
+            with _starting():
+                # Imported here: importing distributed starts a helper thread, which must inherit
+                # the blocked SIGINT too, since the worker processes are spawned from its threads.
+                import dask
+                from distributed import Client, LocalCluster
+
+                with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES}):
+                    self.cluster = LocalCluster(
+                        n_workers=self.workers,
+                        threads_per_worker=1,
+                        processes=True,
+                        host="127.0.0.1",
+                        # Loopback and a free port: the scheduler's HTTP server always starts (without
+                        # bokeh it serves a page saying so), and it must not listen on every interface.
+                        dashboard_address="127.0.0.1:0",
+                        silence_logs=logging.ERROR,
+                        preload=[__name__],
+                    )
+                self.client = Client(self.cluster, set_as_default=False)
+        except BaseException:  # a signal held back during the start lands here, once assigned
+            self.close()
+            raise
 
     def __exit__(self, *exc: object) -> None:
         self.close()
@@ -125,8 +200,8 @@ class Engine:
             if part is not None:
                 try:
                     part.close()
-                except Exception:  # noqa: BLE001 - closing must not hide the run's own error
-                    log.warning("closing %s failed", type(part).__name__, exc_info=True)
+                except Exception as exc:  # noqa: BLE001 - closing must not hide the run's own error
+                    log.warning("closing %s failed: %s: %s", type(part).__name__, type(exc).__name__, exc)
 
     # -- information ---------------------------------------------------------------------------
     @property
@@ -175,8 +250,9 @@ class Engine:
         when ``failure`` is given; otherwise the exception is raised here and the remaining tasks
         are cancelled.  ``progress`` is called with ``"done/total label"`` as each task ends.
         """
-        if self.distributed and self.client is None:
-            raise RuntimeError("Engine.map outside its 'with' block")
+        if not tasks:
+            return []
+        self.start()
         results: list[Any] = [None] * len(tasks)
         count = [0]
 
