@@ -81,13 +81,15 @@ def _starting() -> Iterator[None]:
     it cleanly (:meth:`Engine.close`).
     """
     main = threading.current_thread() is threading.main_thread()
+    masks = hasattr(signal, "pthread_sigmask")  # POSIX
     held: list[int] = []
     old_term = signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum)) if main else None
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if masks else None
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C is delivered here
+        if old_mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C is delivered here
         if main:
             signal.signal(signal.SIGTERM, old_term)
             if held:
