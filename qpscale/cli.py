@@ -73,6 +73,8 @@ RANGES: dict[str, str] = {
     "--top-h": "(0, 1.5 / layers] L (default: uniform layers)",
     "--refinement": "integers in [2, 16]",
     "--workers": "integers from 1 to the number of cores (paper: 1 or 2)",
+    "--scheduler": "a Dask scheduler address, e.g. tcp://host:8786 (not with --workers)",
+    "grid": "a TOML file: experiment, [random], [parameters] (docs/cli.md, qpscale sweep)",
     "--scene-time-limit": "[0, inf) s, 0 for none",
     "--time-limit": "(0, inf) s",
     "--fuzz": "integers in [0, 100000]",
@@ -80,7 +82,7 @@ RANGES: dict[str, str] = {
     "--max-minutes": "(0, inf) min (default $QPSCALE_MAX_MINUTES or 60)",
     "--png": "a .png, .svg or .pdf file path; its directory is created before the run",
     "--vtk": "a directory, created before the run; an earlier series there is replaced",
-    "--out": "a directory, created before the run",
+    "--out": "a directory (sweep: a .parquet file), created before the run",
 }
 
 
@@ -138,6 +140,12 @@ class OneLineErrors(TyperGroup):
         if not standalone:
             return code
         sys.exit(code)
+
+
+def _print_info(line: str) -> None:
+    """A line for the person watching (stderr: stdout is the result's)."""
+    with contextlib.suppress(OSError):
+        err_console.print(line, markup=False, highlight=False, soft_wrap=True)
 
 
 def _print_error(line: str) -> None:
@@ -566,7 +574,12 @@ def paper(
     smoke: bool = typer.Option(
         False, "--smoke", help="With --quick: one scene per study (the plain-install check; under a minute)."
     ),
-    workers: int = typer.Option(2, "--workers", help=_help("--workers", "Parallel processes.")),
+    workers: int | None = typer.Option(
+        None, "--workers", help=_help("--workers", "Worker processes of the local Dask cluster (default 2).")
+    ),
+    scheduler: str | None = typer.Option(
+        None, "--scheduler", help=_help("--scheduler", "Run the scenes on this Dask cluster.")
+    ),
     scene_time_limit: float | None = typer.Option(
         None,
         "--scene-time-limit",
@@ -582,16 +595,20 @@ def paper(
     Each finished scene is saved in --out/scenes at once; a rerun into the same --out resumes.
     """
     from . import validation as v
-    from .studies.paper import run_paper
+    from .studies.engine import Engine
+    from .studies.paper import MAX_WORKERS, run_paper
     from .studies.paper_scenes import paper_scenes, smoke_scenes
 
-    n_workers = v.integer("workers", workers, 1, 2)
+    if scheduler is not None and workers is not None:
+        raise v.conflict("scheduler", "workers", "the cluster at --scheduler has its own workers")
+    n_workers = v.integer("workers", MAX_WORKERS if workers is None else workers, 1, MAX_WORKERS)
     limit = None if scene_time_limit is None else v.real("scene_time_limit", scene_time_limit, 0.0, None)
     if smoke and not quick:
         raise v.conflict("smoke", "quick", "--smoke is a subset of the quick study: give --quick too")
     out_dir = v.output_dir("out", out)
     scenes = smoke_scenes() if smoke else paper_scenes(quick)
-    with _progress("paper") as bar, terminate_as_interrupt():
+    engine = Engine(min(n_workers, os.cpu_count() or 1), scheduler, announce=_print_info)
+    with terminate_as_interrupt(), _progress("paper") as bar:
         task = bar.add_task(f"paper: 0/{len(scenes)} scenes", total=len(scenes))
 
         def step(scene: Any, row: dict[str, Any]) -> None:
@@ -602,9 +619,10 @@ def paper(
             )
 
         try:
-            result = run_paper(
-                out_dir, quick=quick, workers=n_workers, progress=step, scenes=scenes, scene_limit_s=limit
-            )
+            with engine:
+                result = run_paper(
+                    out_dir, quick=quick, progress=step, scenes=scenes, scene_limit_s=limit, engine=engine
+                )
         except KeyboardInterrupt as exc:
             what = "terminated" if isinstance(exc, _Terminated) else "interrupted"
             _print_error(
@@ -677,7 +695,9 @@ def bench(
     time_limit: float = typer.Option(
         60.0, "--time-limit", help=_help("--time-limit", "Seconds per curve counted for a failure.")
     ),
-    workers: int = typer.Option(1, "--workers", help=_help("--workers", "Parallel processes.")),
+    workers: int = typer.Option(
+        1, "--workers", help=_help("--workers", "Worker processes (more than 1: a local Dask cluster).")
+    ),
     fuzz_n: int = typer.Option(
         1000, "--fuzz", help=_help("--fuzz", "Random designs of the fuzz grid (full bench; 0: none).")
     ),
@@ -689,7 +709,7 @@ def bench(
     """
     from . import validation as v
     from .studies.bench_report import run_all
-    from .studies.parallel import check_workers
+    from .studies.engine import check_workers
 
     limit = v.real("time_limit", time_limit, 0.0, None, lo_open=True, unit="s")
     check_workers(v.integer("workers", workers, 1, 1024))
@@ -719,6 +739,116 @@ def bench(
         for name, f in p.get("fuzz", {}).get("methods", {}).items():
             console.print(f"fuzz {name:>17}: {f['success_rate']:.1%} of {f['designs']} designs pass")
         console.print(f"charts and CSV in {p['out']}")
+
+    emit(payload, as_json, summary)
+
+
+def _bar(description: str):
+    """A progress bar with a count and the time left (stderr, only on a terminal)."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=err_console,
+        transient=True,
+        disable=not err_console.is_terminal,
+    )
+
+
+@app.command()
+@handles_errors
+def sweep(
+    grid: Path = typer.Argument(..., help=_help("grid", "The designs to run.")),
+    out: Path = typer.Option(
+        Path("sweep.parquet"),
+        "--out",
+        help=_help("--out", "The results table (Parquet); rows in it are skipped."),
+    ),
+    workers: int | None = typer.Option(
+        None,
+        "--workers",
+        help=_help("--workers", "Worker processes of the local Dask cluster (default: the cores)."),
+    ),
+    scheduler: str | None = typer.Option(
+        None, "--scheduler", help=_help("--scheduler", "Run the designs on this Dask cluster.")
+    ),
+    retry_failed: bool = typer.Option(
+        False, "--retry-failed", help="Also rerun the designs whose row in --out did not end ok."
+    ),
+    as_json: bool = JsonOpt,
+) -> None:
+    """Many designs on Dask: a grid or a random sample from GRID, one row per design in --out.
+
+    Resumable: designs already in --out are skipped; a killed run keeps its finished rows.
+    """
+    from . import validation as v
+    from .studies.engine import Engine, check_workers
+    from .studies.sweep import load_spec
+    from .studies.sweep_run import run_sweep
+
+    if scheduler is not None and workers is not None:
+        raise v.conflict("scheduler", "workers", "the cluster at --scheduler has its own workers")
+    n_workers = check_workers((os.cpu_count() or 1) if workers is None else workers)
+    spec = load_spec(grid)
+    out_file = v.output_file("out", out)
+    if out_file.suffix.lower() != ".parquet":
+        raise InvalidDesign("out", str(out_file), "a .parquet file")
+    engine = Engine(n_workers, scheduler, local_cluster=True, announce=_print_info)
+    with terminate_as_interrupt(), _bar("sweep") as bar:
+        task = bar.add_task("sweep", total=None)
+
+        def start(todo: int, skipped: int) -> None:
+            _print_info(f"sweep: {len(spec.designs)} designs, {skipped} already in {out_file}, {todo} to run")
+            bar.update(task, total=todo)
+
+        def step(row: dict[str, Any]) -> None:
+            bar.update(task, advance=1, description=f"sweep: last {row['status']}")
+
+        try:
+            with engine:
+                result = run_sweep(spec, out_file, engine, retry_failed, on_start=start, on_done=step)
+        except KeyboardInterrupt as exc:
+            what = "terminated" if isinstance(exc, _Terminated) else "interrupted"
+            _print_error(
+                f"error: {what}: finished designs are in {out_file}; rerun the same command to resume"
+            )
+            raise typer.Exit(143 if isinstance(exc, _Terminated) else EXIT_INTERRUPTED) from None
+    payload = {
+        "out": str(result.out),
+        "experiment": spec.experiment,
+        "sample": spec.sample,
+        "n_designs": result.n_designs,
+        "n_skipped": result.n_skipped,
+        "n_run": result.n_run,
+        "n_rows": sum(result.statuses.values()),
+        "n_failed": len(result.failed),
+        "statuses": result.statuses,
+        "failed": result.failed,
+        "engine": engine.started or engine.describe(),
+        "wall_s": result.wall_s,
+    }
+
+    def summary(p: dict[str, Any]) -> None:
+        counts = ", ".join(f"{n} {s}" for s, n in sorted(p["statuses"].items()))
+        console.print(
+            f"[bold]sweep[/] ({p['experiment']}, {p['sample']}): {p['n_designs']} designs, "
+            f"{p['n_skipped']} skipped, {p['n_run']} run; table {p['out']}: {counts}; {p['wall_s']:.0f} s"
+        )
+        for f in p["failed"][:20]:
+            console.print(f"  {f['status']}: {f['key']}", markup=False)
+        if len(p["failed"]) > 20:
+            console.print(f"  ... and {len(p['failed']) - 20} more (column status of the table)")
 
     emit(payload, as_json, summary)
 

@@ -12,15 +12,17 @@ the exception comes as soon as control returns to Python.
 :class:`TimeLimitReached` derives from ``BaseException`` on purpose, like ``KeyboardInterrupt``:
 the backends wrap their solver calls in ``except Exception`` (to turn a solver's own errors into
 a ``SolverFailure``), and an interruption there must end the run, not be reported as a solver
-status.  Where no interval timer exists (not the main thread, or no ``setitimer``), the limit is
-not enforced and the run goes to its end.
+status.  Where neither mechanism exists (no ``setitimer`` in the main thread; not CPython, or no
+per-thread CPU clock, elsewhere), the limit is not enforced and the run goes to its end.
 """
 
 from __future__ import annotations
 
+import ctypes
 import signal
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 STATUS = "time_limit"
@@ -37,9 +39,13 @@ class TimeLimitReached(BaseException):
         super().__init__(f"stopped at the {what} limit of {limit:g} s")
 
 
-def enforceable() -> bool:
-    """True where :func:`time_limit` can interrupt: POSIX interval timers, main thread."""
-    return hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
+def enforceable(clock: str = "wall") -> bool:
+    """True where :func:`time_limit` can interrupt the calling thread on ``clock``: POSIX interval
+    timers in the main thread, a watchdog thread elsewhere (CPython; a per-thread CPU clock)."""
+    if threading.current_thread() is threading.main_thread():
+        return hasattr(signal, "setitimer")
+    has_async = hasattr(ctypes, "pythonapi") and hasattr(ctypes.pythonapi, "PyThreadState_SetAsyncExc")
+    return has_async and (clock == "wall" or hasattr(time, "pthread_getcpuclockid"))
 
 
 # Interval timer and its signal: wall-clock time, or the process's CPU time (user + system).
@@ -61,8 +67,12 @@ def time_limit(seconds: float | None, clock: str = "wall") -> Iterator[None]:
     """
     if clock not in _CLOCKS:
         raise ValueError(f"clock={clock!r} is outside {{wall, cpu}}")
-    if seconds is None or seconds <= 0 or not enforceable():
+    if seconds is None or seconds <= 0 or not enforceable(clock):
         yield
+        return
+    if threading.current_thread() is not threading.main_thread():
+        with _watchdog(float(seconds), clock):
+            yield
         return
     timer, signum = (getattr(signal, name) for name in _CLOCKS[clock])
 
@@ -77,3 +87,64 @@ def time_limit(seconds: float | None, clock: str = "wall") -> Iterator[None]:
     finally:
         signal.setitimer(timer, 0.0)
         signal.signal(signum, previous)
+
+
+# Poll period of the watchdog on the CPU clock, seconds: the limit is met within this (and the
+# next Python bytecode); a wall-clock watchdog waits the whole remaining time in one call.
+CPU_POLL_S = 0.05
+
+
+def _thread_clock(clock: str) -> Callable[[], float]:
+    """The calling thread's clock: monotonic wall time, or this thread's own CPU time."""
+    if clock == "wall":
+        return time.monotonic
+    clk = time.pthread_getcpuclockid(threading.get_ident())
+    return lambda: time.clock_gettime(clk)
+
+
+def _set_async(ident: int, exc: type[BaseException] | None) -> None:
+    """Raise ``exc`` in thread ``ident`` at its next bytecode (None: cancel a pending one)."""
+    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(ident), ctypes.py_object(exc) if exc else None)
+
+
+@contextmanager
+def _watchdog(seconds: float, clock: str) -> Iterator[None]:
+    """The limit outside the main thread: a daemon thread that raises :class:`TimeLimitReached` in
+    this one once ``seconds`` have passed on ``clock``.
+
+    The asynchronous exception is a class raised without arguments, so a subclass carries the
+    limit.  A lock orders the two ends: once the body is done the watchdog cannot fire, and an
+    exception it set that the body had no time to see is withdrawn.
+    """
+    ident = threading.get_ident()
+    now = _thread_clock(clock)
+    t_end = now() + seconds
+    lock = threading.Lock()
+    done = threading.Event()
+    fired = []
+
+    class _Reached(TimeLimitReached):
+        def __init__(self) -> None:
+            super().__init__(seconds, clock)
+
+    _Reached.__name__ = _Reached.__qualname__ = "TimeLimitReached"
+
+    def watch() -> None:
+        while not done.wait(max(t_end - now(), 0.0) if clock == "wall" else CPU_POLL_S):
+            if now() >= t_end:
+                with lock:
+                    if not done.is_set():
+                        _set_async(ident, _Reached)
+                        fired.append(True)
+                return
+
+    watcher = threading.Thread(target=watch, name="qpscale-time-limit", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        with lock:
+            done.set()
+            if fired:
+                _set_async(ident, None)
+        watcher.join()

@@ -55,6 +55,7 @@ FLAG_OF: dict[str, str] = {
     "formulation": "--formulation",
     "refinement": "--refinement",
     "workers": "--workers",
+    "scheduler": "--scheduler",
     "scene_time_limit": "--scene-time-limit",
     "time_limit": "--time-limit",
     "fuzz": "--fuzz",

@@ -184,7 +184,7 @@ def test_stability_point_runs_every_method_at_the_references_load_point():
 
 
 def test_workers_out_of_range_rejected():
-    from qpscale.studies.parallel import check_workers
+    from qpscale.studies.engine import check_workers
 
     with pytest.raises(InvalidDesign, match="workers"):
         check_workers(0)

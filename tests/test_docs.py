@@ -20,7 +20,7 @@ from qpscale.cli import RANGES, app
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI_MD = (ROOT / "docs" / "cli.md").read_text()
-COMMANDS = ("geometry", "substrate", "puncture", "flexure", "paper", "bench")
+COMMANDS = ("geometry", "substrate", "puncture", "flexure", "paper", "bench", "sweep")
 
 
 def _section(command: str, title: str) -> list[list[str]]:

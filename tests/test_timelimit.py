@@ -79,3 +79,57 @@ def test_cpu_clock_counts_cpu_not_sleep():
     assert signal.getitimer(signal.ITIMER_PROF) == (0.0, 0.0)
     with pytest.raises(ValueError, match="clock"), time_limit(1.0, clock="moon"):
         pass
+
+
+def _in_thread(fn):
+    """Run ``fn()`` in a new thread (as a Dask worker runs its tasks); its result or exception."""
+    import threading
+
+    out: list = []
+
+    def body():
+        try:
+            out.append(fn())
+        except BaseException as exc:  # noqa: BLE001 - handed back to the test
+            out.append(exc)
+
+    t = threading.Thread(target=body)
+    t.start()
+    t.join()
+    return out[0]
+
+
+@pytest.mark.parametrize("clock", ["wall", "cpu"])
+def test_limit_stops_a_busy_loop_in_another_thread(clock):
+    # Outside the main thread a watchdog sets the exception asynchronously; 0.5 s of slack as above
+    # (the CPU clock is polled every 0.05 s), on the clock limited: this thread's CPU time for
+    # "cpu" (on a loaded machine its wall time runs ahead).
+    now = time.perf_counter if clock == "wall" else time.thread_time
+
+    def run():
+        t0 = now()
+        try:
+            with time_limit(0.2, clock):
+                try:
+                    _spin(5.0)
+                except Exception:  # noqa: BLE001 - a solver wrapper must not swallow it
+                    return "swallowed"
+        except TimeLimitReached as exc:
+            return exc, now() - t0
+        return "not stopped"
+
+    exc, elapsed = _in_thread(run)
+    assert isinstance(exc, TimeLimitReached) and exc.status == STATUS and exc.limit == 0.2
+    assert exc.clock == clock and 0.2 <= elapsed < 0.7
+
+
+def test_finished_body_in_another_thread_is_not_interrupted_later():
+    def run():
+        with time_limit(0.3):
+            _spin(0.05)
+        _spin(0.6)  # past the limit: the watchdog must be gone
+        with time_limit(0.2, "cpu"):
+            time.sleep(0.4)  # sleeping costs no CPU time
+        return "done"
+
+    assert _in_thread(run) == "done"

@@ -27,7 +27,7 @@ from ..solvers import available_solvers, is_available
 from ..tiling import Design
 from ..timelimit import TimeLimitReached
 from ..timelimit import time_limit as wall_limit
-from .parallel import pmap
+from .engine import Engine, map_tasks
 
 FC_TOL = 1e-2  # F_c relative error above 1 % is a failure (issue #6 stability map)
 PEN_TOL = 1e-9  # exact-contact methods must not overlap more than this (L)
@@ -324,23 +324,28 @@ def run_bench(
     time_limit: float = 60.0,
     progress: Callable[[str], None] | None = None,
     workers: int = 1,
+    engine: Engine | None = None,
 ) -> BenchResult:
     """Reference per scene, then every method on every scene with a reference; summarised.
 
-    ``workers`` processes run the references, then the (scene, method) runs, one run per process
-    at a time (:mod:`qpscale.studies.parallel`): with no more workers than cores each run's wall
-    time is what it would be alone, so the ratios of one run stay comparable.
+    The references, then the (scene, method) runs, are tasks of ``engine`` (None: one of
+    ``workers`` processes, :mod:`qpscale.studies.engine`), one run per worker process at a time:
+    with no more workers than cores each run's wall time is what it would be alone, so the ratios
+    of one run stay comparable.
     """
-    found = pmap(
+    found = map_tasks(
         _reference_or_failure,
         [(s, REFERENCE_LIMIT_FACTOR * time_limit) for s in scenes],
         workers,
+        engine,
         progress,
         lambda t: f"{t[0].name}: reference",
+        "reference",
     )
     refs = {s.name: r for s, r in zip(scenes, found, strict=True) if isinstance(r, Reference)}
     tasks = [(s, m, refs[s.name], time_limit) for s in scenes if s.name in refs for m in methods]
-    done = pmap(run_method, tasks, workers, progress, lambda t: f"{t[0].name}: {t[1].name}")
+    label = lambda t: f"{t[0].name}: {t[1].name}"  # noqa: E731
+    done = map_tasks(run_method, tasks, workers, engine, progress, label, "run")
     by_key = {(r.scene, r.method): r for r in done}
     runs: list[Run] = []
     for s, r in zip(scenes, found, strict=True):

@@ -19,7 +19,7 @@ from ..experiments.puncture import top_vertices
 from ..penalty import PenaltySettings
 from ..tiling import DESIGNS, Design
 from .bench import FC_TOL, BenchResult, Method, Reference, Run, Scene, _setup, backend_overrides, run_method
-from .parallel import pmap
+from .engine import Engine, map_tasks
 
 FLOOR = 1e-16  # F_c errors are drawn at least at this value on the log axis
 
@@ -85,13 +85,17 @@ def stability_map(
     time_limit: float = 60.0,
     progress: Callable[[str], None] | None = None,
     workers: int = 1,
+    engine: Engine | None = None,
 ) -> pd.DataFrame:
-    """Run the grid; each point's reference is clarabel at high accuracy at the scene's load point."""
+    """Run the grid; each point's reference is clarabel at high accuracy at the scene's load point.
+
+    The points are tasks of ``engine`` (None: one of ``workers`` processes)."""
     kappas = (1e2, 1e4) if quick else (1e1, 1e2, 1e3, 1e4, 1e5, 1e6)
     methods = [Method("osqp-feature-mid", "osqp", "mid", formulation="feature")]
     methods += [Method(f"penalty-k{k:.0e}", "penalty", penalty=PenaltySettings(k_pen=k)) for k in kappas]
     tasks = [(params, scene, methods, time_limit) for params, scene in stability_grid(quick)]
-    points = pmap(_stability_point, tasks, workers, progress, lambda t: f"stability {t[1].name}")
+    label = lambda t: f"stability {t[1].name}"  # noqa: E731
+    points = map_tasks(_stability_point, tasks, workers, engine, progress, label, "stability")
     df = pd.DataFrame([row for rows in points for row in rows])
     df.to_csv(out / "stability_map.csv", index=False)
     _plot_stability(df, out / "stability_map.png")
@@ -220,6 +224,7 @@ def fuzz(
     limit_s: float | None = 60.0,
     workers: int = 1,
     n_others: int | None = None,
+    engine: Engine | None = None,
 ) -> pd.DataFrame:
     """``n`` random designs through the puncture path (rings = 1, coarse increments): each run
     passes our checks or fails with a named status.
@@ -230,7 +235,8 @@ def fuzz(
     fuzz asks whether every path ends in a checked answer or a clear error, not which vertex is
     worst; the search over vertices would cost ~4x).  Each run has ``limit_s`` seconds of CPU
     time (wall time on a busy machine would fail runs for the machine's load); one over it is
-    recorded as ``time limit``.  Chunks of :data:`FUZZ_CHUNK` designs are kept under
+    recorded as ``time limit``.  Chunks of :data:`FUZZ_CHUNK` designs are the tasks of ``engine``
+    (None: one of ``workers`` processes); they are kept under
     ``out/fuzz_chunks`` and not rerun (delete them after changing the code).  Returns one row
     per (method, design); writes fuzz.csv.
     """
@@ -243,7 +249,8 @@ def fuzz(
         for j, method in enumerate(methods)
         for k in range(chunks if j == 0 else min(others, chunks))
     ]
-    parts = pmap(_fuzz_chunk, tasks, workers, progress, lambda t: f"fuzz {t[0].name} from {t[1]}")
+    label = lambda t: f"fuzz {t[0].name} from {t[1]}"  # noqa: E731
+    parts = map_tasks(_fuzz_chunk, tasks, workers, engine, progress, label, "fuzz")
     df = pd.concat(parts, ignore_index=True)
     if len(methods) > 1 and "Fc_star" in df:
         first = df[(df.method == methods[0].name) & (df.outcome == "pass")].set_index("i").Fc_star
@@ -324,14 +331,33 @@ def run_all(
 
     Returns the JSON payload of ``qpscale bench`` (docs/cli.md contract plus extras).
     """
-    from .bench import default_methods, full_scenes, quick_scenes, run_bench, skipped_methods
+    from .bench import default_methods, full_scenes, quick_scenes, run_bench
 
     out.mkdir(parents=True, exist_ok=True)
     scenes = quick_scenes() if quick else full_scenes()
-    result = run_bench(scenes, default_methods(quick), time_limit, progress, workers)
-    work_precision(result, out)
-    pd.DataFrame(result.summary).drop(columns="statuses").to_csv(out / "summary.csv", index=False)
-    stab = stability_map(quick, out, time_limit, progress, workers)
+    # One engine for every stage: a local cluster starts once (and only for more than one worker).
+    with Engine(workers) as engine:
+        result = run_bench(scenes, default_methods(quick), time_limit, progress, workers, engine)
+        work_precision(result, out)
+        pd.DataFrame(result.summary).drop(columns="statuses").to_csv(out / "summary.csv", index=False)
+        stab = stability_map(quick, out, time_limit, progress, workers, engine)
+        payload = _payload(result, stab, quick, time_limit, workers, out, fuzz_n)
+        if not quick and fuzz_n > 0:
+            payload["fuzz"] = _fuzz_summary(fuzz_n, out, progress, workers, engine)
+    return payload
+
+
+def _payload(
+    result: BenchResult,
+    stab: pd.DataFrame,
+    quick: bool,
+    time_limit: float,
+    workers: int,
+    out: Path,
+    fuzz_n: int,
+) -> dict:
+    from .bench import skipped_methods
+
     payload = {
         "reference": {k: asdict(v) for k, v in result.references.items()},
         "methods": result.summary,
@@ -346,32 +372,38 @@ def run_all(
         "workers": workers,
         "out": str(out),
     }
-    if not quick and fuzz_n > 0:
-        n_others = max(fuzz_n // 10, 1)
-        fz = fuzz(
-            fuzz_n,
-            out,
-            FUZZ_SEED,
-            fuzz_methods(),
-            progress=progress,
-            limit_s=FUZZ_LIMIT_S,
-            workers=workers,
-            n_others=n_others,
-        )
-        payload["fuzz"] = {
-            "n": fuzz_n,
-            "methods": {
-                m: {
-                    "designs": int(len(g)),
-                    "success_rate": float((g.outcome == "pass").mean()),
-                    "outcomes": {str(k): int(v) for k, v in g.outcome.value_counts().items()},
-                }
-                for m, g in fz.groupby("method", sort=False)
-            },
-            "note": (
-                f"rings = 1 patches, 4 target increments, contact interaction, one random top vertex, "
-                f"{FUZZ_LIMIT_S:.0f} CPU-s per run; the first method over all designs, the others over "
-                f"the first {n_others} (F_c within 1 % of the first's)"
-            ),
-        }
     return payload
+
+
+def _fuzz_summary(
+    fuzz_n: int, out: Path, progress: Callable[[str], None] | None, workers: int, engine: Engine
+) -> dict:
+    """The full bench's fuzz run on ``engine`` and its summary for the payload."""
+    n_others = max(fuzz_n // 10, 1)
+    fz = fuzz(
+        fuzz_n,
+        out,
+        FUZZ_SEED,
+        fuzz_methods(),
+        progress=progress,
+        limit_s=FUZZ_LIMIT_S,
+        workers=workers,
+        n_others=n_others,
+        engine=engine,
+    )
+    return {
+        "n": fuzz_n,
+        "methods": {
+            m: {
+                "designs": int(len(g)),
+                "success_rate": float((g.outcome == "pass").mean()),
+                "outcomes": {str(k): int(v) for k, v in g.outcome.value_counts().items()},
+            }
+            for m, g in fz.groupby("method", sort=False)
+        },
+        "note": (
+            f"rings = 1 patches, 4 target increments, contact interaction, one random top vertex, "
+            f"{FUZZ_LIMIT_S:.0f} CPU-s per run; the first method over all designs, the others over "
+            f"the first {n_others} (F_c within 1 % of the first's)"
+        ),
+    }

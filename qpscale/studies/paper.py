@@ -1,9 +1,10 @@
-"""Every study of the paper in one call: scenes in parallel, one tidy table, curves, figures.
+"""Every study of the paper in one call: scenes on the engine, one tidy table, curves, figures.
 
 Implements the normalisations of formulations/normalisation.md: an array's F_c* over the worst
 F_c* of the isolated scale of the same shape, slant and slant direction (paper Fig. 6a, 13), and
 over the same design without slant (Fig. 9a).  The scenes are listed in ``paper_scenes``; one
-scene runs in ``paper_run``; the figures are drawn in ``figures``.
+scene runs in ``paper_run``, on the workers of :mod:`qpscale.studies.engine`; the figures are
+drawn in ``figures``.
 """
 
 from __future__ import annotations
@@ -12,16 +13,15 @@ import json
 import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from .engine import Engine
 from .paper_run import run_scene
 from .paper_scenes import Scene, paper_scenes
-from .parallel import terminate_pool, worker_init
 
 MAX_WORKERS = 2
 # Wall-time limit of one scene in seconds (full run, quick run): a scene over it is recorded with
@@ -62,37 +62,38 @@ def run_scenes(
     progress: Callable[[Scene, dict], None] | None = None,
     limit_s: float | None = None,
     on_done: Callable[[Scene, dict, dict], None] | None = None,
+    engine: Engine | None = None,
 ) -> tuple[list[dict], dict]:
-    """Run ``scenes`` on ``workers`` processes (1: in this process), rows in the order given.
+    """Run ``scenes`` on ``engine`` (None: a local one of ``workers`` processes, 1: this process),
+    rows in the order given.
 
     ``limit_s`` is each scene's wall-time limit (None: none).  ``on_done(scene, row, data)`` is
     called as each scene finishes (:func:`run_paper` saves it there).  An exception here (Ctrl-C,
-    SIGTERM turned into one by the command line) terminates the worker processes before it
-    propagates: no worker keeps computing a scene nobody will read.
+    SIGTERM turned into one by the command line) cancels the scenes not yet done and, for a local
+    cluster, ends its worker processes: no worker keeps computing a scene nobody will read.  A
+    scene whose task the cluster gave up (its workers killed, e.g. out of memory) is a row with
+    the exception's class as its status.
     """
     rows: dict[str, dict] = {}
     data: dict[str, dict] = {}
 
-    def done(scene: Scene, row: dict, d: dict) -> None:
-        rows[scene.key], data[scene.key] = row, d
+    def done(i: int, result: tuple[dict, dict]) -> None:
+        scene = scenes[i]
+        rows[scene.key], data[scene.key] = result
         if on_done:
-            on_done(scene, row, d)
+            on_done(scene, *result)
         if progress:
-            progress(scene, row)
+            progress(scene, result[0])
 
-    if workers <= 1 or len(scenes) <= 1:
-        for s in scenes:
-            done(s, *run_scene(s, limit_s))
-    else:
-        pool = ProcessPoolExecutor(max_workers=min(workers, MAX_WORKERS), initializer=worker_init)
-        try:
-            futures = {pool.submit(run_scene, s, limit_s): s for s in scenes}
-            for fut in as_completed(futures):
-                done(futures[fut], *fut.result())
-        except BaseException:
-            terminate_pool(pool)
-            raise
-        pool.shutdown(wait=True)
+    def lost(i: int, exc: BaseException) -> tuple[dict, dict]:
+        return {**scenes[i].as_dict(), "status": type(exc).__name__, "error": str(exc)}, {}
+
+    if engine is None:
+        # No cluster to start for one scene (or none left to run after a resume).
+        n = min(workers, MAX_WORKERS, os.cpu_count() or 1) if len(scenes) > 1 else 1
+        with Engine(n) as own:
+            return run_scenes(scenes, workers, progress, limit_s, on_done, own)
+    engine.map(run_scene, [(s, limit_s) for s in scenes], on_done=done, failure=lost, name="scene")
     return [rows[s.key] for s in scenes], data
 
 
@@ -197,6 +198,7 @@ def run_paper(
     progress: Callable[[Scene, dict], None] | None = None,
     scenes: list[Scene] | None = None,
     scene_limit_s: float | None = None,
+    engine: Engine | None = None,
 ) -> PaperResult:
     """Run every study of the paper and write the table, curves and figures into ``out``.
 
@@ -207,7 +209,7 @@ def run_paper(
     quick : bool
         Two designs, fewer increments, coarse membrane: the CI variant (a few minutes).
     workers : int
-        Processes (at most ``MAX_WORKERS``).
+        Worker processes of a local Dask cluster (at most ``MAX_WORKERS``; 1: this process).
     progress : callable or None
         Called with (scene, row) as each scene finishes.
     scenes : list of Scene or None
@@ -215,6 +217,8 @@ def run_paper(
     scene_limit_s : float or None
         Wall-time limit of each scene in seconds (default ``SCENE_LIMIT_S[quick]``; 0: none). A
         scene over it gets the status ``time_limit`` and empty results; the study goes on.
+    engine : Engine or None
+        Run the scenes there (entered; e.g. a Dask cluster at an address) instead of ``workers``.
 
     Notes
     -----
@@ -254,7 +258,7 @@ def run_paper(
         rows[scene.key], data[scene.key] = row, d
         write_progress(out, len(rows), len(todo_all), complete=False)
 
-    run_scenes(todo, workers, progress, limit, on_done)
+    run_scenes(todo, workers, progress, limit, on_done, engine)
     table = add_ratios(pd.DataFrame([rows[s.key] for s in todo_all]))
     curves = {s.key: data[s.key] for s in todo_all}
     figures = all_figures(table, curves, out)
