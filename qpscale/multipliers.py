@@ -130,8 +130,10 @@ def _maximise_smallest_eigenvalue(
     """``u`` maximising ``mu(u) = lambda_min(base + sum_j u_j dirs_j)`` over ``lam0 + N u >= 0``,
     ``|lam0 + N u| <= bound``, by Kelley's cutting planes: ``mu(u) <= mu(u_i) + g_i'(u - u_i)``
     with the subgradient ``g_ij = v_i' dirs_j v_i`` (``v_i`` the eigenvector).  Stops when the
-    best value exceeds ``-tol`` (stable), the model's bound falls below it (unstable), or the
-    two are within ``GAP``; the best ``u`` found is returned."""
+    best value exceeds ``-tol`` (stable) or when the model's bound and the best value are within
+    ``GAP``: an unstable state's mode is then the maximiser's (the direction the path pushes
+    along), not that of wherever the bound first fell below ``-tol``; the best ``u`` found is
+    returned."""
     nu = len(dirs)
     if nu == 0:  # one member: nothing to choose
         return np.zeros(0)
@@ -139,7 +141,7 @@ def _maximise_smallest_eigenvalue(
     def value(u: np.ndarray) -> tuple[float, np.ndarray]:
         vals, vecs = np.linalg.eigh(base + np.tensordot(u, dirs, axes=1))
         v = vecs[:, 0]
-        return float(vals[0]), np.einsum("i,jik,k->j", v, dirs, v)
+        return float(vals[0]), (dirs @ v) @ v
 
     u = np.zeros(nu)
     best, g = value(u)
@@ -167,7 +169,7 @@ def _maximise_smallest_eigenvalue(
         f, g = value(u)
         if f > best:
             best, best_u = f, u
-        if best > -tol or upper < -tol or upper - best <= GAP:
+        if best > -tol or upper - best <= GAP:
             break
         cuts.append((f, g, u))
     return best_u
@@ -206,7 +208,8 @@ def uniform_second_variation(
     ij = 5 * load.scale + np.arange(3, 5)
     # Reduced pieces: H(lam, F) = H0 - sum lam_i h_i + F h_w, each as Z'(.)Z / scale.
     M0 = Z.T @ H0 @ Z / scale
-    Mi = np.einsum("rak,rab,rbl->rkl", Z[idx], h, Z[idx]) / scale
+    Zr = Z[idx]  # (rows, 8, d): each row's eight unknowns in the reduced basis
+    Mi = np.matmul(Zr.transpose(0, 2, 1), np.matmul(h, Zr)) / scale
     Mw = Z[ij].T @ ddr[-1, :, :, 2] @ Z[ij] / scale
     Mw = 0.5 * (Mw + Mw.T)
     Mi = 0.5 * (Mi + Mi.transpose(0, 2, 1))
@@ -218,12 +221,12 @@ def uniform_second_variation(
     # is decided (or the bounds meet).
     k = len(ms.rows)
     ker = ms.kernel
-    base = M0 - np.einsum("r,rkl->kl", ms.lam, Mi) + ms.F * Mw
-    dirs = np.array([-np.einsum("r,rkl->kl", ker[:k, j], Mi) + ker[k, j] * Mw for j in range(ker.shape[1])])
+    base = M0 - np.tensordot(ms.lam, Mi, axes=1) + ms.F * Mw
+    dirs = -np.tensordot(ker[:k].T, Mi, axes=1) + ker[k][:, None, None] * Mw
     u = _maximise_smallest_eigenvalue(base, dirs, ms.lam, ker[:k], force_scale * BOX, tol)
     w = np.r_[ms.lam, ms.F] + ker @ u
     lam, F = w[:k], w[k]
-    Mstar = M0 - np.einsum("r,rkl->kl", lam, Mi) + F * Mw
+    Mstar = M0 - np.tensordot(lam, Mi, axes=1) + F * Mw
     vals, vecs = np.linalg.eigh(0.5 * (Mstar + Mstar.T))
     mu = float(vals[0])
     mode = (Z @ vecs[:, 0])[: 5 * n].reshape(n, 5)
