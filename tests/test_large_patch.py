@@ -71,3 +71,95 @@ def test_sparse_definiteness_check_agrees_with_dense_eigenvalues():
     check_positive_definite(K - 0.5 * lo * sp.identity(K.shape[0]))
     with pytest.raises(QpscaleError, match="positive definite"):
         check_positive_definite(K - 1.01 * lo * sp.identity(K.shape[0]))
+
+
+def test_sparse_path_equals_dense_path_on_the_3x3():
+    """F_c* of the default scene with the vectorised sparse K and with the loop-built dense K."""
+    from qpscale.experiments.puncture import PunctureSetup, run_puncture
+    from qpscale.studies.large_patch import puncture_with_stiffness
+
+    design = Design(rings=1)
+    patch = design.patch()
+    ref = dense_reference(patch, calibrate(design, SubstrateModel()), 0.01, 1.0)
+    F_dense = puncture_with_stiffness(PunctureSetup(design=design), sp.csc_matrix(ref))
+    F_sparse = run_puncture(PunctureSetup(design=design)).Fc_star
+    assert abs(F_sparse - F_dense) <= 1e-9 * F_dense
+
+
+def test_extrapolation_recovers_a_power_tail_and_refuses_other_forms():
+    from qpscale.patch_convergence import extrapolate
+
+    n = [3, 5, 7, 9, 11, 13]
+    exact = [1.5 - 0.8 * k**-1.2 for k in n]
+    e, why = extrapolate(n, exact)
+    assert e is not None and abs(e.F_inf - 1.5) < 1e-8 and abs(e.p - 1.2) < 1e-6 and e.error < 1e-6
+    # A perturbed tail: the stated error covers the true limit.
+    noisy = [F + 2e-4 * (-1) ** k for k, F in enumerate(exact)]
+    e, _ = extrapolate(n, noisy)
+    assert e is not None and abs(e.F_inf - 1.5) <= e.error
+    assert extrapolate(n, [1.0, 1.2, 1.1, 1.3, 1.25, 1.4])[0] is None  # not monotone
+    assert "not monotone" in extrapolate(n, [1.0, 1.2, 1.1, 1.3, 1.25, 1.4])[1]
+    assert extrapolate(n[:3], exact[:3])[0] is None  # too few patches
+
+
+def test_rings_auto_stops_by_its_rule_and_matches_individual_runs():
+    from qpscale.api import puncture
+
+    cheap = {"interaction": "substrate", "probe": False}
+    report = puncture(rings="auto", **cheap)
+    auto = report.to_dict()["rings_auto"]
+    seq = auto["sequence"]
+    assert auto["converged"] and auto["tol"] == 0.005
+    changes = [row["change"] for row in seq]
+    assert changes[0] is None and changes[-1] <= 0.005 and all(c > 0.005 for c in changes[1:-1])
+    for row in seq:
+        single = puncture(rings=row["rings"], **cheap).Fc_star
+        assert abs(row["Fc_star"] - single) <= 1e-12 * single
+    assert report.Fc_star == seq[-1]["Fc_star"]
+    assert report.to_dict()["n_scales"] == seq[-1]["n_scales"]
+    # A looser tolerance stops earlier on the same sequence.
+    loose = puncture(rings="auto", rings_tol=0.05, **cheap).to_dict()["rings_auto"]["sequence"]
+    assert [r["Fc_star"] for r in loose] == [r["Fc_star"] for r in seq[: len(loose)]]
+    assert len(loose) == 2
+
+
+@pytest.mark.parametrize(
+    "args,flag",
+    [
+        (["--rings", "abc"], "--rings"),
+        (["--rings", "2.5"], "--rings"),
+        (["--rings", "-1"], "--rings"),
+        (["--rings", "auto", "--rings-tol", "0"], "--rings-tol"),
+        (["--rings", "auto", "--rings-tol", "0.6"], "--rings-tol"),
+        (["--rings", "2", "--rings-tol", "0.01"], "--rings-tol"),
+        (["--rings", "auto", "--isolated"], "--isolated"),
+    ],
+)
+def test_bad_rings_values_exit_2_naming_the_flag(args, flag):
+    from typer.testing import CliRunner
+
+    from qpscale.cli import app
+
+    result = CliRunner().invoke(app, ["puncture", *args])
+    assert result.exit_code == 2
+    assert flag in result.output
+
+
+def test_rings_auto_json_holds_the_documented_fields():
+    import json
+    import re
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from qpscale.cli import app
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
+    row = next(line for line in doc.splitlines() if line.startswith("| `rings_auto`"))
+    documented = set(re.findall(r"`([A-Za-z_]+)`", row)) - {"rings_auto", "rings"}
+    args = ["puncture", "--rings", "auto", "--rings-tol", "0.05", "--interaction", "substrate", "--no-probe"]
+    result = CliRunner().invoke(app, [*args, "--json"])
+    assert result.exit_code == 0, result.output
+    auto = json.loads(result.stdout)["rings_auto"]
+    present = set(auto) | set(auto["sequence"][0])
+    assert documented - {"Fc_star_inf", "error", "a", "p", "points"} <= present
