@@ -163,3 +163,25 @@ def test_rings_auto_json_holds_the_documented_fields():
     auto = json.loads(result.stdout)["rings_auto"]
     present = set(auto) | set(auto["sequence"][0])
     assert documented - {"Fc_star_inf", "error", "a", "p", "points"} <= present
+
+
+def test_full_patch_bem_reproduces_the_calibration_blocks_on_the_3x3():
+    """The whole-patch solve (every scale a source, uniform mesh) against the calibration (only the
+    centre a source, far edges coarsened by eq. (9c)): same blocks to the focus rule's 1e-3."""
+    from qpscale.studies.large_patch import full_patch_stiffness, rigid_patch_kz, truncated
+
+    design = Design(rings=1)
+    patch = design.patch()
+    K = full_patch_stiffness(patch, density=4)
+    cal = calibrate(design, SubstrateModel(refinement=4))
+    scale = np.abs(cal.K0[0]).max()
+    assert np.abs(K[:5, :5] - cal.K0[0]).max() < 2e-3 * scale
+    east = next(c for c in cal.couplings if c.source == 0 and c.site == (1, 0))
+    k = next(i for i, s in enumerate(patch.sites.tolist()) if s == [1, 0, 0])
+    assert np.abs(K[5 * k : 5 * k + 5, :5] - east.K1).max() < 2e-3 * scale
+    # Dropping nothing keeps the matrix; dropping every coupling leaves the self blocks.
+    assert np.array_equal(truncated(K, 0.0).toarray(), K)
+    diag = truncated(K, 0.999).toarray()
+    assert np.count_nonzero(diag[:5, 5:]) == 0 and np.array_equal(diag[:5, :5], K[:5, :5])
+    # The rigid-patch vertical stiffness is the sum of every zz entry.
+    assert abs(rigid_patch_kz(patch, sp.csc_matrix(K)) - K[2::5, 2::5].sum()) < 1e-12 * K[2::5, 2::5].sum()

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -170,3 +171,98 @@ def run_cost(rings: int, probe: bool = True) -> dict[str, float]:
 def fitted_exponent(n: list[float], y: list[float]) -> float:
     """Slope of log y against log n (least squares): the cost exponent of y ~ n^p."""
     return float(np.polyfit(np.log(n), np.log(y), 1)[0])
+
+
+@dataclass(frozen=True)
+class PatchMechanics:
+    """Where the puncture load goes at failure, for one patch size (substrate.md sec. 10).
+
+    ``vertical[k]``: net vertical substrate reaction under ring k, as a fraction of F (the rings
+    add up to 1).  ``inplane[k]``: sum over ring k of the magnitudes of the in-plane substrate
+    reactions, as a fraction of F (they cancel in the sum: the wedged patch is self-equilibrated in
+    its plane).  ``chain``: scales connected to the punctured one through contacts carrying more
+    than 1e-6 F (the locked group).
+    """
+
+    rings: int
+    n_scales: int
+    Fc_star: float
+    vertical: list[float]
+    inplane: list[float]
+    chain: int
+    contact_pairs: int
+
+
+def patch_mechanics(rings: int) -> PatchMechanics:
+    """Run the default puncture scene on ``rings`` rings and split the failure load by ring and
+    by contact cluster."""
+    from ..experiments.puncture import run_puncture
+
+    design = Design(rings=rings)
+    patch = design.patch()
+    eq = run_puncture(PunctureSetup(design=design)).states[-1]
+    K = stiffness_matrix(patch, SubstrateModel())
+    reaction = -(K @ eq.q.ravel()).reshape(-1, 5)  # force of the substrate on each scale
+    F = eq.F
+    vertical = [float(reaction[patch.ring == k, 2].sum() / F) for k in range(rings + 1)]
+    inplane = [float(np.hypot(*reaction[patch.ring == k, :2].T).sum() / F) for k in range(rings + 1)]
+    cs, lam = eq.contacts, np.asarray(eq.lam)
+    pairs: set[tuple[int, int]] = set()
+    if cs is not None and cs.m:
+        on = lam[: cs.m] > 1e-6 * F
+        pairs = {(int(a), int(b)) for a, b in zip(cs.a[on], cs.b[on])}
+    neighbours: dict[int, set[int]] = {}
+    for a, b in pairs:
+        neighbours.setdefault(a, set()).add(b)
+        neighbours.setdefault(b, set()).add(a)
+    cluster, frontier = {0}, [0]
+    while frontier:
+        for j in neighbours.get(frontier.pop(), set()) - cluster:
+            cluster.add(j)
+            frontier.append(j)
+    return PatchMechanics(rings, patch.n_scales, float(F), vertical, inplane, len(cluster), len(pairs))
+
+
+def draw_patch_size(
+    sequences: dict[str, tuple[list[int], list[float]]], mechanics: list[PatchMechanics], out: str | Path
+) -> list[Path]:
+    """Figure of formulations/substrate.md sec. 10: (a) F_c* against patch width for each stiffness
+    model in ``sequences`` (label -> (widths, F_c*)); (b) the in-plane substrate reaction by ring at
+    failure for each patch of ``mechanics``.  Written as PNG and SVG into ``out``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 4))
+    for label, (widths, F) in sequences.items():
+        ax.plot(widths, F, "o-", label=label)
+    ax.set_xlabel("patch width n (scales)")
+    ax.set_ylabel("F_c*")
+    ax.set_title("(a) puncture resistance against patch size")
+    ax.legend(fontsize=8)
+    for m in mechanics:
+        bx.plot(range(m.rings + 1), m.inplane, "o-", label=f"{2 * m.rings + 1}x{2 * m.rings + 1}")
+    bx.set_xlabel("ring k (0: punctured scale)")
+    bx.set_ylabel("sum |in-plane substrate reaction| / F")
+    bx.set_title("(b) in-plane load carried by each ring at failure")
+    bx.legend(fontsize=8)
+    paths = [out / "patch_size.png", out / "patch_size.svg"]
+    for p in paths:
+        fig.savefig(p, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return paths
+
+
+def cost_study(rings: list[int], probe: bool = True) -> dict[str, object]:
+    """Wall time and peak memory of the default puncture scene against the number of scales, one
+    subprocess per patch, with the fitted exponents of time and memory in n (substrate.md sec. 11)."""
+    rows = [run_cost(r, probe) for r in rings]
+    n = [float(r["n_scales"]) for r in rows]
+    return {
+        "rows": rows,
+        "time_exponent": fitted_exponent(n, [float(r["run_s"]) for r in rows]) if len(rows) > 1 else None,
+        "memory_exponent": fitted_exponent(n, [float(r["peak_gb"]) for r in rows]) if len(rows) > 1 else None,
+    }
