@@ -185,3 +185,26 @@ def test_full_patch_bem_reproduces_the_calibration_blocks_on_the_3x3():
     assert np.count_nonzero(diag[:5, 5:]) == 0 and np.array_equal(diag[:5, :5], K[:5, :5])
     # The rigid-patch vertical stiffness is the sum of every zz entry.
     assert abs(rigid_patch_kz(patch, sp.csc_matrix(K)) - K[2::5, 2::5].sum()) < 1e-12 * K[2::5, 2::5].sum()
+
+
+@pytest.mark.parametrize("shape", ["square", "triangle"])
+def test_local_self_blocks_match_the_whole_patch_solve_on_the_edge(shape):
+    """Eq. (18): a scale with missing neighbours gets the self block of its own neighbourhood; on
+    the 3x3 (every scale but the centre on the edge) these equal the whole-patch BEM's diagonal
+    blocks to the focus rule's 1e-3, where the translation-invariant K0 is off by a third."""
+    from qpscale.studies.large_patch import full_patch_stiffness
+    from qpscale.substrate.stiffness import local_self_blocks
+
+    design = Design(shape=shape, rings=1)
+    patch = design.patch()
+    model = SubstrateModel(refinement=4)
+    local = local_self_blocks(patch, model)
+    K = full_patch_stiffness(patch, density=4)
+    K0 = calibrate(design, model).K0
+    scale = np.abs(K0[0]).max()
+    for k in range(patch.n_scales):
+        own = K[5 * k : 5 * k + 5, 5 * k : 5 * k + 5]
+        assert np.abs(own - local[k]).max() < 3e-3 * scale
+    edge = [k for k in range(patch.n_scales) if patch.ring[k] == 1]
+    assert max(np.abs(K0[patch.sites[k, 2]] - local[k]).max() for k in edge) > 0.2 * scale
+    assert np.array_equal(local[0], K0[0])  # the centre has every neighbour

@@ -19,7 +19,7 @@ from ..tiling import Design, Patch
 from ..units import check_nu, e_star
 from .bem import isolated_block
 from .cache import cache_key, cached
-from .calibration import Calibration, solve_calibration
+from .calibration import R180, Calibration, local_self_block, ring1_offsets, solve_calibration
 from .springs import spring_calibration
 
 FIDELITIES = ("bem", "springs")
@@ -135,16 +135,24 @@ def _block_triplets(rows: np.ndarray, cols: np.ndarray, blocks: Array, n: int) -
     return K
 
 
-def assemble(patch: Patch, cal: Calibration, threshold: float, coupling: float) -> sp.csc_matrix:
+def assemble(
+    patch: Patch,
+    cal: Calibration,
+    threshold: float,
+    coupling: float,
+    self_blocks: Array | None = None,
+) -> sp.csc_matrix:
     """K(f) = K_iso + f (K_multi - K_iso) of a patch from calibrated blocks (eqs. (15)-(16)).
 
     Built from triplets, vectorised per kept coupling offset: memory and time are linear in the
     number of scales (about 25 (1 + kept couplings) stored entries per scale), no dense matrix.
+    ``self_blocks (n, 5, 5)`` replaces the translation-invariant K0 of each scale (eq. (18)).
     """
     n = patch.n_scales
     members = patch.sites[:, 2]
     rows, cols = [np.arange(n)], [np.arange(n)]
-    blocks = [(1.0 - coupling) * cal.K_iso[None] + coupling * cal.K0[members]]
+    own = cal.K0[members] if self_blocks is None else self_blocks
+    blocks = [(1.0 - coupling) * cal.K_iso[None] + coupling * own]
     if n > 1 and coupling > 0.0:
         # Sites (i, j, member) -> scale index through a sorted integer key (no Python loop per scale).
         span = (
@@ -170,6 +178,41 @@ def assemble(patch: Patch, cal: Calibration, threshold: float, coupling: float) 
             cols.append(src[hit])
             blocks.append(np.broadcast_to(coupling * c.K1, (int(hit.sum()), 5, 5)))
     return _block_triplets(np.concatenate(rows), np.concatenate(cols), np.concatenate(blocks), n)
+
+
+_LOCAL_BLOCKS: dict[tuple, Array] = {}
+
+
+def local_self_blocks(patch: Patch, model: SubstrateModel | None = None) -> Array:
+    """Self block ``(n, 5, 5)`` of every scale with only the ring-1 neighbours the patch has
+    (eq. (18)): K0 inside, the block of a scale with missing neighbours on the edge.
+
+    One boundary-element solve per distinct neighbourhood (a square patch has 8: four edges, four
+    corners), cached in memory.  Member-1 scales use the point reflection of eq. (13).
+    """
+    model = model or SubstrateModel()
+    d = patch.design
+    tiling = d.tiling or ""
+    cal = calibrate(d, model)
+    ring1 = ring1_offsets(d.shape, tiling, d.gap)
+    index = {tuple(s) for s in patch.sites.tolist()}
+    cross = bool(model.cross_terms and model.nu < 0.5)
+    out = np.empty((patch.n_scales, 5, 5))
+    for k, (i, j, m) in enumerate(patch.sites.tolist()):
+        # A member-1 scale sees its neighbourhood point-reflected onto a member-0 one.
+        offsets = ring1 if m == 0 else tuple((-a, -b, 1 - c) for a, b, c in ring1)
+        present = tuple(o for o in offsets if (i + o[0], j + o[1], o[2]) in index)
+        if len(present) == len(offsets):
+            out[k] = cal.K0[m]
+            continue
+        as0 = present if m == 0 else tuple((-a, -b, 1 - c) for a, b, c in present)
+        key = (d.shape, tiling, d.gap, model.nu, model.refinement, cross, as0)
+        if key not in _LOCAL_BLOCKS:
+            _LOCAL_BLOCKS[key] = local_self_block(
+                d.shape, tiling, d.gap, model.nu, model.refinement, as0, cross
+            )
+        out[k] = _LOCAL_BLOCKS[key] if m == 0 else R180 @ _LOCAL_BLOCKS[key] @ R180
+    return out
 
 
 def factor_stiffness(K: sp.spmatrix):
