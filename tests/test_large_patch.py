@@ -208,3 +208,14 @@ def test_local_self_blocks_match_the_whole_patch_solve_on_the_edge(shape):
     edge = [k for k in range(patch.n_scales) if patch.ring[k] == 1]
     assert max(np.abs(K0[patch.sites[k, 2]] - local[k]).max() for k in edge) > 0.2 * scale
     assert np.array_equal(local[0], K0[0])  # the centre has every neighbour
+
+
+def test_patch_size_figure_and_load_split(tmp_path):
+    from qpscale.studies.large_patch import draw_patch_size, patch_mechanics
+
+    m = patch_mechanics(1)
+    # Vertical equilibrium: the substrate reactions of the rings carry F exactly.
+    assert abs(sum(m.vertical) - 1.0) < 1e-6
+    assert m.chain <= m.n_scales and m.Fc_star == pytest.approx(1.2249934, rel=1e-6)
+    paths = draw_patch_size({"default": ([3], [m.Fc_star])}, [m], tmp_path)
+    assert all(p.exists() and p.stat().st_size > 1000 for p in paths)

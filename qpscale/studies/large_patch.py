@@ -266,3 +266,31 @@ def cost_study(rings: list[int], probe: bool = True) -> dict[str, object]:
         "time_exponent": fitted_exponent(n, [float(r["run_s"]) for r in rows]) if len(rows) > 1 else None,
         "memory_exponent": fitted_exponent(n, [float(r["peak_gb"]) for r in rows]) if len(rows) > 1 else None,
     }
+
+
+def local_edge_stiffness(patch: Patch, model: SubstrateModel | None = None) -> sp.csc_matrix:
+    """K of a patch with the edge-aware self blocks of eq. (18) (ring-1 couplings as calibrated)."""
+    from ..substrate import assemble, calibrate
+    from ..substrate.stiffness import local_self_blocks
+
+    model = model or SubstrateModel()
+    cal = calibrate(patch.design, model)
+    return assemble(patch, cal, model.threshold, model.coupling, local_self_blocks(patch, model))
+
+
+def patch_size_figure(out: str | Path, rings: tuple[int, ...] = (1, 2, 3)) -> list[Path]:
+    """Compute and draw the figure of formulations/substrate.md sec. 10 for the default scene:
+    F_c* of the default and the edge-aware (eq. (18)) models, and the in-plane load by ring."""
+    mechanics = [patch_mechanics(r) for r in rings]
+    widths = [2 * r + 1 for r in rings]
+    local = []
+    for r in rings:
+        design = Design(rings=r)
+        local.append(
+            puncture_with_stiffness(PunctureSetup(design=design), local_edge_stiffness(design.patch()))
+        )
+    sequences = {
+        "default: K0 on every scale": (widths, [m.Fc_star for m in mechanics]),
+        "edge-aware self blocks (eq. 18)": (widths, local),
+    }
+    return draw_patch_size(sequences, mechanics, out)
