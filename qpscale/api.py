@@ -580,9 +580,12 @@ def _puncture_rings_auto(args: dict[str, Any]) -> PunctureReport:
     reports: dict[int, PunctureReport] = {}
 
     def run(n: int) -> float:
+        done = ", ".join(f"{r}: {rep.Fc_star:.4f}" for r, rep in reports.items())
+        tag = f"rings {n}" + (f" (F_c* by rings {done})" if done else "")
         if progress:
-            progress(f"rings {n}")
-        reports[n] = puncture(rings=n, progress=progress, **args)
+            progress(tag)
+        step = (lambda msg: progress(f"{tag}: {msg}")) if progress else None
+        reports[n] = puncture(rings=n, progress=step, **args)
         return reports[n].Fc_star
 
     def limit(n: int) -> str:
