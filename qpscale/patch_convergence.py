@@ -8,11 +8,12 @@ n = 2 r + 1 (in scales) with its error estimate, reported only where the sequenc
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import curve_fit
+from scipy.optimize import OptimizeWarning, curve_fit
 
 # Fewest points for the three-parameter fit plus one to test it, and the points it uses (the last).
 MIN_FIT_POINTS = 4
@@ -68,7 +69,11 @@ def _fit(n: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     guess = [F[-1] + a0 * n[-1] ** -p0, a0, p0]
     lo = [-np.inf, -np.inf, P_RANGE[0] / 2]
     hi = [np.inf, np.inf, 2 * P_RANGE[1]]
-    popt, pcov = curve_fit(_model, n, F, p0=guess, bounds=(lo, hi), maxfev=20000)
+    with warnings.catch_warnings():
+        # Four points leave one degree of freedom: a covariance that cannot be estimated is
+        # reported as inf and the error then rests on the leave-one-out change (``extrapolate``).
+        warnings.simplefilter("ignore", OptimizeWarning)
+        popt, pcov = curve_fit(_model, n, F, p0=guess, bounds=(lo, hi), maxfev=20000)
     return popt, pcov
 
 
@@ -98,7 +103,7 @@ def extrapolate(widths: list[int], values: list[float]) -> tuple[Extrapolation |
     F_inf, a, p = (float(x) for x in popt)
     if not P_RANGE[0] <= p <= P_RANGE[1]:
         return None, f"fitted exponent p = {p:.3g} outside [{P_RANGE[0]}, {P_RANGE[1]}]"
-    stderr = float(np.sqrt(max(pcov[0, 0], 0.0))) if np.all(np.isfinite(pcov)) else math.inf
+    stderr = float(np.sqrt(max(pcov[0, 0], 0.0))) if np.all(np.isfinite(pcov)) else 0.0
     error = max(stderr, abs(F_inf - float(drop[0])))
     if not math.isfinite(error) or error > abs(F_inf - F[-1]):
         return None, f"the extrapolated value is less certain (+-{error:.3g}) than its distance to the last"
