@@ -219,3 +219,17 @@ def test_patch_size_figure_and_load_split(tmp_path):
     assert m.chain <= m.n_scales and m.Fc_star == pytest.approx(1.2249934, rel=1e-6)
     paths = draw_patch_size({"default": ([3], [m.Fc_star])}, [m], tmp_path)
     assert all(p.exists() and p.stat().st_size > 1000 for p in paths)
+
+
+def test_cost_study_runs_each_patch_in_its_own_process():
+    from qpscale.api import puncture
+    from qpscale.studies.large_patch import cost_study, fitted_exponent
+
+    study = cost_study([0, 1], probe=False)
+    rows = study["rows"]
+    assert [r["n_scales"] for r in rows] == [1, 9]
+    for r in rows:
+        assert r["Fc_star"] == pytest.approx(puncture(rings=r["rings"], probe=False).Fc_star, rel=1e-12)
+        assert 0.0 < r["peak_gb"] < 4.0 and 0.0 < r["run_s"] <= r["wall_s"]
+    assert np.isfinite(study["time_exponent"]) and np.isfinite(study["memory_exponent"])
+    assert fitted_exponent([1.0, 10.0, 100.0], [3.0, 300.0, 30000.0]) == pytest.approx(2.0)
