@@ -233,3 +233,27 @@ def test_cost_study_runs_each_patch_in_its_own_process():
         assert 0.0 < r["peak_gb"] < 4.0 and 0.0 < r["run_s"] <= r["wall_s"]
     assert np.isfinite(study["time_exponent"]) and np.isfinite(study["memory_exponent"])
     assert fitted_exponent([1.0, 10.0, 100.0], [3.0, 300.0, 30000.0]) == pytest.approx(2.0)
+
+
+def test_edges_option_of_the_substrate_model():
+    from qpscale.errors import InvalidDesign
+    from qpscale.substrate import stiffness_matrix
+    from qpscale.substrate.stiffness import local_self_blocks
+
+    patch = Design(rings=2).patch()
+    model = SubstrateModel(refinement=3)
+    K = stiffness_matrix(patch, model.with_(edges="local")).toarray()
+    own = local_self_blocks(patch, model)
+    ref = assemble(patch, calibrate(patch.design, model), model.threshold, model.coupling, own).toarray()
+    assert np.array_equal(K, ref)
+    default = stiffness_matrix(patch, model).toarray()
+    inner = [k for k in range(patch.n_scales) if patch.ring[k] < 2]  # every neighbour present
+    for k in inner:
+        assert np.array_equal(
+            K[5 * k : 5 * k + 5, 5 * k : 5 * k + 5], default[5 * k : 5 * k + 5, 5 * k : 5 * k + 5]
+        )
+    assert np.array_equal(K - np.diag(np.diag(K)) != 0, default - np.diag(np.diag(default)) != 0)
+    with pytest.raises(InvalidDesign, match="edges"):
+        SubstrateModel(edges="free")
+    with pytest.raises(InvalidDesign, match="edges"):
+        SubstrateModel(fidelity="springs", edges="local")

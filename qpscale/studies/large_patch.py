@@ -270,12 +270,7 @@ def cost_study(rings: list[int], probe: bool = True) -> dict[str, object]:
 
 def local_edge_stiffness(patch: Patch, model: SubstrateModel | None = None) -> sp.csc_matrix:
     """K of a patch with the edge-aware self blocks of eq. (18) (ring-1 couplings as calibrated)."""
-    from ..substrate import assemble, calibrate
-    from ..substrate.stiffness import local_self_blocks
-
-    model = model or SubstrateModel()
-    cal = calibrate(patch.design, model)
-    return assemble(patch, cal, model.threshold, model.coupling, local_self_blocks(patch, model))
+    return stiffness_matrix(patch, (model or SubstrateModel()).with_(edges="local"))
 
 
 def patch_size_figure(out: str | Path, rings: tuple[int, ...] = (1, 2, 3)) -> list[Path]:

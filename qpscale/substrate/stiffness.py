@@ -23,6 +23,7 @@ from .calibration import R180, Calibration, local_self_block, ring1_offsets, sol
 from .springs import spring_calibration
 
 FIDELITIES = ("bem", "springs")
+EDGES = ("clamped", "local")
 _MATRIX_CACHE: dict[tuple, sp.csc_matrix] = {}
 
 
@@ -47,6 +48,10 @@ class SubstrateModel:
         Rings of clamped neighbours in the calibration solve, 1 or 2.
     cross_terms : bool
         Include the (1 - 2 nu) normal-tangential coupling of the half-space.
+    edges : str
+        Self blocks of scales with missing ring-1 neighbours: ``"clamped"`` (the default: K0 on
+        every scale, as if the absent neighbours were present and clamped) or ``"local"`` (the
+        block of the scale's own neighbourhood, formulations/substrate.md eq. (18)); ``bem`` only.
 
     >>> SubstrateModel(coupling=0.04).coupling
     0.04
@@ -59,6 +64,7 @@ class SubstrateModel:
     refinement: int = 6
     calibration_rings: int = 1
     cross_terms: bool = True
+    edges: str = "clamped"
 
     def __post_init__(self) -> None:
         check_nu(self.nu)
@@ -73,10 +79,13 @@ class SubstrateModel:
                 "integers in [2, 16]",
             ),
             ("calibration_rings", self.calibration_rings, self.calibration_rings in (1, 2), "{1, 2}"),
+            ("edges", self.edges, self.edges in EDGES, "{clamped, local}"),
         ]
         for name, value, ok, allowed in checks:
             if not ok:
                 raise InvalidDesign(name, value, allowed)
+        if self.edges == "local" and self.fidelity != "bem":
+            raise InvalidDesign("edges", self.edges, "{clamped} with fidelity springs (local needs bem)")
 
     def with_(self, **changes: object) -> SubstrateModel:
         return replace(self, **changes)  # type: ignore[arg-type]
@@ -272,7 +281,8 @@ def stiffness_matrix(patch: Patch, model: SubstrateModel | None = None) -> sp.cs
             K_iso = 0.5 * (K_iso + K_iso.T)
             K = sp.csc_matrix(np.diag(np.diag(K_iso)) if model.fidelity == "springs" else K_iso)
         else:
-            K = assemble(patch, calibrate(d, model), model.threshold, model.coupling)
+            own = local_self_blocks(patch, model) if model.edges == "local" else None
+            K = assemble(patch, calibrate(d, model), model.threshold, model.coupling, own)
         check_positive_definite(K)
         _MATRIX_CACHE[key] = K
     return _MATRIX_CACHE[key].copy()
