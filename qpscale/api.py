@@ -367,7 +367,7 @@ def puncture(
     slant_dir_deg: float = 0.0,
     gap: float = 0.005,
     thickness: float = 1.0,
-    rings: int | None = None,
+    rings: int | str | None = None,
     isolated: bool = False,
     interaction: str = "full",
     coupling_factor: float | None = None,
@@ -384,6 +384,7 @@ def puncture(
     max_memory_gb: float | None = None,
     max_minutes: float | None = None,
     progress: Callable[[str], None] | None = None,
+    rings_tol: float | None = None,
 ) -> PunctureReport:
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c.
 
@@ -391,8 +392,12 @@ def puncture(
     ----------
     shape, tiling, slant_deg, slant_dir_deg, gap, thickness
         The design (see :func:`geometry`).
-    rings : int or None
+    rings : int, "auto" or None
         Rings of neighbours, [0, 50] within the memory limit (default 2: 5x5). Not with ``isolated``.
+        ``"auto"`` grows the patch from 1 ring until F_c* changes by at most ``rings_tol``
+        (formulations/substrate.md sec. 10); the report is the last patch's, with the sequence
+        and, where the sequence has the form F_inf - a n^-p, the extrapolated F_inf and its error
+        under ``"rings_auto"``.
     isolated : bool
         The punctured scale alone (rings = 0).
     interaction : {"full", "substrate", "contact"}
@@ -429,6 +434,8 @@ def puncture(
         Refuse a scene whose estimated time exceeds this (default ``$QPSCALE_MAX_MINUTES`` or 60).
     progress : callable or None
         Called with a short message as the path advances.
+    rings_tol : float or None
+        Relative tolerance of ``rings="auto"``, (0, 0.5] (default 0.005); only with ``"auto"``.
 
     Returns
     -------
@@ -444,6 +451,9 @@ def puncture(
     """
     from .experiments.puncture import INTERACTIONS
 
+    if isinstance(rings, str) and rings.strip().lower() == "auto" or rings_tol is not None:
+        args = {k: val for k, val in locals().items() if k != "INTERACTIONS"}
+        return _puncture_rings_auto(args)
     values = v.design_values(shape, tiling, slant_deg, slant_dir_deg, gap, thickness)
     if isolated and rings is not None:
         raise v.conflict("isolated", "rings", "--isolated means rings = 0")
@@ -546,6 +556,89 @@ def puncture(
         if written is not None:
             payload["vtk"] = written
     return PunctureReport(payload, tuple(errors), result)
+
+
+DEFAULT_RINGS_TOL = 0.005
+# rings = auto starts from the 3x3 patch: the 1-ring patch is the smallest with every neighbour.
+AUTO_FIRST_RINGS = 1
+
+
+def _puncture_rings_auto(args: dict[str, Any]) -> PunctureReport:
+    """``puncture(rings="auto")``: one run per patch size until F_c* settles (substrate.md sec. 10)."""
+    from .patch_convergence import grow_patch
+
+    rings, tol = args.pop("rings"), args.pop("rings_tol")
+    if not (isinstance(rings, str) and rings.strip().lower() == "auto"):
+        raise v.conflict("rings_tol", "rings", "--rings-tol applies to --rings auto only")
+    if args.pop("isolated"):
+        raise v.conflict("isolated", "rings", "--isolated means rings = 0")
+    tol = v.real("rings_tol", DEFAULT_RINGS_TOL if tol is None else tol, 0.0, 0.5, lo_open=True)
+    progress = args.pop("progress")
+    if args.pop("vtk") is not None:
+        raise v.conflict(
+            "vtk", "rings", "one ParaView series per patch size is not written; give an integer --rings"
+        )
+    reports: dict[int, PunctureReport] = {}
+
+    def run(n: int) -> float:
+        done = ", ".join(f"{r}: {rep.Fc_star:.4f}" for r, rep in reports.items())
+        tag = f"rings {n}" + (f" (F_c* by rings {done})" if done else "")
+        if progress:
+            progress(tag)
+        step = (lambda msg: progress(f"{tag}: {msg}")) if progress else None
+        reports[n] = puncture(rings=n, progress=step, **args)
+        return reports[n].Fc_star
+
+    def limit(n: int) -> str:
+        try:  # the next patch's own memory and time checks, without running it
+            patch = _design(v.design_values(*(args[k] for k in DESIGN_KEYS)), n).patch()
+            size = f"a patch of {patch.n_scales} scales"
+            pairs = len(patch.contact_pairs)
+            v.memory(
+                v.puncture_memory_gb(patch.n_scales, pairs),
+                v.max_memory_gb(args["max_memory_gb"]),
+                "rings",
+                n,
+                size,
+            )
+            v.duration(
+                v.puncture_time_s(patch.n_scales, pairs, bool(args["probe"])),
+                v.max_minutes(args["max_minutes"]),
+                "rings",
+                n,
+                size,
+            )
+        except InvalidDesign as exc:
+            return str(exc)
+        return ""
+
+    seq = grow_patch(run, tol, AUTO_FIRST_RINGS, v.MAX_RINGS, stop=limit)
+    last = reports[seq.rings[-1]]
+    ext = seq.extrapolation
+    payload = dict(last.payload)
+    payload["rings_auto"] = {
+        "tol": tol,
+        "converged": seq.converged,
+        "stop_reason": seq.stop_reason,
+        "sequence": [
+            {
+                "rings": r,
+                "n_scales": reports[r].payload["n_scales"],
+                "Fc_star": F,
+                "change": c,
+                "wall_s": w,
+            }
+            for r, F, c, w in zip(seq.rings, seq.values, seq.changes, seq.wall_s)
+        ],
+        "extrapolation": None
+        if ext is None
+        else {"Fc_star_inf": ext.F_inf, "error": ext.error, "a": ext.a, "p": ext.p, "points": ext.points},
+        "no_extrapolation": seq.no_extrapolation or None,
+    }
+    return PunctureReport(payload, last.output_errors, last.result)
+
+
+DESIGN_KEYS = ("shape", "tiling", "slant_deg", "slant_dir_deg", "gap", "thickness")
 
 
 FLEXURE_DESIGN_FLAGS = ("shape", "tiling", "slant_deg", "slant_dir_deg", "gap", "thickness")

@@ -55,7 +55,8 @@ RANGES: dict[str, str] = {
     "--slant-dir": "[0, 360) deg from +x",
     "--gap": "[0, 1) L",
     "--thickness": "(0, 100] L",
-    "--rings": "integers in [0, 50] (puncture: within the memory and time limits)",
+    "--rings": "integers in [0, 50] (puncture: within the memory and time limits, or auto)",
+    "--rings-tol": "(0, 0.5] (default 0.005), with --rings auto",
     "--interaction": "{full, substrate, contact}",
     "--coupling-factor": "[0, 1]",
     "--solver": "an installed backend (clarabel, osqp, cvxpy, qpsolvers:<name>) or penalty",
@@ -365,6 +366,37 @@ def _progress(description: str):
     )
 
 
+def _rings_value(text: str | None) -> int | str | None:
+    """``--rings`` as an integer, or "auto"; anything else is refused naming the flag."""
+    if text is None or text.strip().lower() == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise InvalidDesign("rings", text, RANGES["--rings"]) from None
+
+
+def _rings_summary(auto: dict[str, Any]) -> None:
+    """The patch-size sequence of ``--rings auto``, one line per patch, and its extrapolation."""
+    for row in auto["sequence"]:
+        change = "" if row["change"] is None else f", change {100 * row['change']:.2f} %"
+        console.print(
+            f"  rings {row['rings']} ({row['n_scales']} scales): F_c* = {_fmt(row['Fc_star'], '.6g')}"
+            f"{change}, {_fmt(row['wall_s'], '.1f')} s"
+        )
+    state = "converged" if auto["converged"] else "not converged"
+    console.print(f"  {state} at --rings-tol {auto['tol']:g}: {auto['stop_reason']}")
+    ext = auto["extrapolation"]
+    if ext is not None:
+        console.print(
+            f"  extrapolated F_c*(infinite patch) = {_fmt(ext['Fc_star_inf'], '.5g')}"
+            f" +- {_fmt(ext['error'], '.2g')}"
+            f" (fit F_inf - a n^-p over {ext['points']} patches, p = {_fmt(ext['p'], '.3g')})"
+        )
+    else:
+        console.print(f"  no extrapolation: {auto['no_extrapolation']}")
+
+
 @app.command()
 @handles_errors
 def puncture(
@@ -374,10 +406,19 @@ def puncture(
     slant_dir: float = SlantDirOpt,
     gap: float = GapOpt,
     thickness: float = ThicknessOpt,
-    rings: int | None = typer.Option(
+    rings: str | None = typer.Option(
         None,
         "--rings",
-        help=_help("--rings", "Rings of neighbours around the punctured scale (default 2: 5x5)."),
+        help=_help(
+            "--rings",
+            "Rings of neighbours around the punctured scale (default 2: 5x5); auto: grow the patch "
+            "until F_c* settles.",
+        ),
+    ),
+    rings_tol: float | None = typer.Option(
+        None,
+        "--rings-tol",
+        help=_help("--rings-tol", "Relative change of F_c* at which --rings auto stops."),
     ),
     isolated: bool = typer.Option(False, "--isolated", help="The punctured scale alone (rings = 0)."),
     interaction: str = typer.Option(
@@ -436,7 +477,7 @@ def puncture(
             slant_dir,
             gap,
             thickness,
-            rings=rings,
+            rings=_rings_value(rings),
             isolated=isolated,
             interaction=interaction,
             coupling_factor=coupling_factor,
@@ -453,9 +494,12 @@ def puncture(
             max_memory_gb=max_memory_gb,
             max_minutes=max_minutes,
             progress=lambda msg: bar.update(task, description=f"puncture: {msg}"),
+            rings_tol=rings_tol,
         )
 
     def summary(p: dict[str, Any]) -> None:
+        if "rings_auto" in p:
+            _rings_summary(p["rings_auto"])
         extra = f" = {_fmt(p.get('Fc_N'), '.4g')} N" if "Fc_N" in p else ""
         branch = " (branched: followed the asymmetric path)" if (p["branch"] or {}).get("branched") else ""
         console.print(

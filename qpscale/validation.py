@@ -29,6 +29,7 @@ FLAG_OF: dict[str, str] = {
     "gap": "--gap",
     "thickness": "--thickness",
     "rings": "--rings",
+    "rings_tol": "--rings-tol",
     "isolated": "--isolated",
     "bare": "--bare",
     "interaction": "--interaction",

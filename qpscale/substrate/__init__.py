@@ -10,6 +10,7 @@ from .stiffness import (
     check_positive_definite,
     coupling_ratio,
     dimensional_stiffness,
+    factor_stiffness,
     stiffness_matrix,
 )
 
@@ -24,6 +25,7 @@ __all__ = [
     "check_positive_definite",
     "coupling_ratio",
     "dimensional_stiffness",
+    "factor_stiffness",
     "isolated_block",
     "punch_blocks",
     "shape_pieces",

@@ -120,3 +120,30 @@ def _coupling_table(patch, K_from0: Array, K0: Array) -> tuple[Coupling, ...]:
             table[(1, -di, -dj, 1 - m)] = (R180 @ S @ R180, neg)
             table[(1 - m, di, dj, 1)] = (R180 @ S.T @ R180, off)
     return tuple(Coupling(k[0], k[3], (k[1], k[2]), v[1], v[0]) for k, v in sorted(table.items()))
+
+
+def ring1_offsets(shape: str, tiling: str, gap: float) -> tuple[tuple[int, int, int], ...]:
+    """Lattice offsets (di, dj, member) of the ring-1 neighbours of a member-0 scale."""
+    patch = _calibration_patch(Design(shape=shape, tiling=tiling, gap=gap), 1)
+    return tuple(tuple(int(v) for v in patch.sites[k]) for k in np.flatnonzero(patch.ring == 1))  # type: ignore[misc]
+
+
+def local_self_block(
+    shape: str,
+    tiling: str,
+    gap: float,
+    nu: float,
+    refinement: int,
+    present: tuple[tuple[int, int, int], ...],
+    cross_terms: bool = True,
+) -> Array:
+    """Self block of a member-0 scale whose ring-1 neighbours are only ``present`` (offsets), all
+    clamped: the self stiffness of a scale on the edge or corner of a patch (formulations/
+    substrate.md sec. 9, eq. (18)).  Same mesh rules and extrapolation as the calibration."""
+    patch = _calibration_patch(Design(shape=shape, tiling=tiling, gap=gap), 1)
+    sites = [tuple(int(v) for v in s) for s in patch.sites]
+    keep = [0] + [k for k, site in enumerate(sites) if k and site in set(present)]
+    feet = [shape_pieces(shape, patch.angles[k], patch.centroids[k]) for k in keep]
+    blocks = extrapolated_blocks(feet, patch.centroids[keep], nu, refinement, (0,), cross_terms, focus=0)
+    K00 = blocks.K[0, 0]
+    return 0.5 * (K00 + K00.T)

@@ -19,10 +19,11 @@ from ..tiling import Design, Patch
 from ..units import check_nu, e_star
 from .bem import isolated_block
 from .cache import cache_key, cached
-from .calibration import Calibration, solve_calibration
+from .calibration import R180, Calibration, local_self_block, ring1_offsets, solve_calibration
 from .springs import spring_calibration
 
 FIDELITIES = ("bem", "springs")
+EDGES = ("clamped", "local")
 _MATRIX_CACHE: dict[tuple, sp.csc_matrix] = {}
 
 
@@ -47,6 +48,10 @@ class SubstrateModel:
         Rings of clamped neighbours in the calibration solve, 1 or 2.
     cross_terms : bool
         Include the (1 - 2 nu) normal-tangential coupling of the half-space.
+    edges : str
+        Self blocks of scales with missing ring-1 neighbours: ``"clamped"`` (the default: K0 on
+        every scale, as if the absent neighbours were present and clamped) or ``"local"`` (the
+        block of the scale's own neighbourhood, formulations/substrate.md eq. (18)); ``bem`` only.
 
     >>> SubstrateModel(coupling=0.04).coupling
     0.04
@@ -59,6 +64,7 @@ class SubstrateModel:
     refinement: int = 6
     calibration_rings: int = 1
     cross_terms: bool = True
+    edges: str = "clamped"
 
     def __post_init__(self) -> None:
         check_nu(self.nu)
@@ -73,10 +79,13 @@ class SubstrateModel:
                 "integers in [2, 16]",
             ),
             ("calibration_rings", self.calibration_rings, self.calibration_rings in (1, 2), "{1, 2}"),
+            ("edges", self.edges, self.edges in EDGES, "{clamped, local}"),
         ]
         for name, value, ok, allowed in checks:
             if not ok:
                 raise InvalidDesign(name, value, allowed)
+        if self.edges == "local" and self.fidelity != "bem":
+            raise InvalidDesign("edges", self.edges, "{clamped} with fidelity springs (local needs bem)")
 
     def with_(self, **changes: object) -> SubstrateModel:
         return replace(self, **changes)  # type: ignore[arg-type]
@@ -121,51 +130,136 @@ def coupling_ratio(K1: Array, K0: Array) -> float:
     return float(np.max(np.abs(K1) / np.outer(d, d)))
 
 
-def _triplets(blocks: list[tuple[int, int, Array]], n: int) -> sp.csc_matrix:
-    rows, cols, vals = [], [], []
+def _kept_couplings(cal: Calibration, threshold: float) -> list:
+    return [c for c in cal.couplings if coupling_ratio(c.K1, cal.K0[c.source]) >= threshold]
+
+
+def _block_triplets(rows: np.ndarray, cols: np.ndarray, blocks: Array, n: int) -> sp.csc_matrix:
+    """Sparse ``(5n, 5n)`` matrix of 5 x 5 ``blocks (b, 5, 5)`` at block positions (rows, cols)."""
     r5, c5 = np.meshgrid(np.arange(5), np.arange(5), indexing="ij")
-    for i, j, B in blocks:
-        rows.append((5 * i + r5).ravel())
-        cols.append((5 * j + c5).ravel())
-        vals.append(B.ravel())
-    coo = sp.coo_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(5 * n, 5 * n)
-    )
-    K = coo.tocsc()
+    i = (5 * rows[:, None, None] + r5).ravel()
+    j = (5 * cols[:, None, None] + c5).ravel()
+    K = sp.coo_matrix((blocks.ravel(), (i, j)), shape=(5 * n, 5 * n)).tocsc()
     K.eliminate_zeros()
     return K
 
 
-def assemble(patch: Patch, cal: Calibration, threshold: float, coupling: float) -> sp.csc_matrix:
-    """K(f) = K_iso + f (K_multi - K_iso) of a patch from calibrated blocks (eqs. (15)-(16))."""
+def assemble(
+    patch: Patch,
+    cal: Calibration,
+    threshold: float,
+    coupling: float,
+    self_blocks: Array | None = None,
+) -> sp.csc_matrix:
+    """K(f) = K_iso + f (K_multi - K_iso) of a patch from calibrated blocks (eqs. (15)-(16)).
+
+    Built from triplets, vectorised per kept coupling offset: memory and time are linear in the
+    number of scales (about 25 (1 + kept couplings) stored entries per scale), no dense matrix.
+    ``self_blocks (n, 5, 5)`` replaces the translation-invariant K0 of each scale (eq. (18)).
+    """
     n = patch.n_scales
     members = patch.sites[:, 2]
-    blocks = [(k, k, (1.0 - coupling) * cal.K_iso + coupling * cal.K0[m]) for k, m in enumerate(members)]
+    rows, cols = [np.arange(n)], [np.arange(n)]
+    own = cal.K0[members] if self_blocks is None else self_blocks
+    blocks = [(1.0 - coupling) * cal.K_iso[None] + coupling * own]
     if n > 1 and coupling > 0.0:
-        index = {tuple(s): k for k, s in enumerate(patch.sites.tolist())}
-        kept = [c for c in cal.couplings if coupling_ratio(c.K1, cal.K0[c.source]) >= threshold]
-        by_source: dict[int, list] = {}
-        for c in kept:
-            by_source.setdefault(c.source, []).append(c)
-        for k, (i, j, m) in enumerate(patch.sites.tolist()):
-            for c in by_source.get(m, []):
-                r = index.get((i + c.site[0], j + c.site[1], c.receiver))
-                if r is not None:
-                    blocks.append((r, k, coupling * c.K1))
-    return _triplets(blocks, n)
+        # Sites (i, j, member) -> scale index through a sorted integer key (no Python loop per scale).
+        span = (
+            int(np.abs(patch.sites[:, :2]).max())
+            + 1
+            + max((max(abs(c.site[0]), abs(c.site[1])) for c in cal.couplings), default=0)
+        )
+        width = 2 * span + 1
+        n_members = 1 + max(int(members.max()), *(c.receiver for c in cal.couplings))
+
+        def key(ij: np.ndarray, m: np.ndarray) -> np.ndarray:
+            return ((ij[:, 0] + span) * width + (ij[:, 1] + span)) * n_members + m
+
+        site_key = key(patch.sites[:, :2], members)
+        order = np.argsort(site_key)
+        sorted_key = site_key[order]
+        for c in _kept_couplings(cal, threshold):
+            src = np.flatnonzero(members == c.source)
+            target = key(patch.sites[src, :2] + np.asarray(c.site), np.full(len(src), c.receiver))
+            pos = np.minimum(np.searchsorted(sorted_key, target), n - 1)
+            hit = sorted_key[pos] == target
+            rows.append(order[pos[hit]])
+            cols.append(src[hit])
+            blocks.append(np.broadcast_to(coupling * c.K1, (int(hit.sum()), 5, 5)))
+    return _block_triplets(np.concatenate(rows), np.concatenate(cols), np.concatenate(blocks), n)
+
+
+_LOCAL_BLOCKS: dict[tuple, Array] = {}
+
+
+def local_self_blocks(patch: Patch, model: SubstrateModel | None = None) -> Array:
+    """Self block ``(n, 5, 5)`` of every scale with only the ring-1 neighbours the patch has
+    (eq. (18)): K0 inside, the block of a scale with missing neighbours on the edge.
+
+    One boundary-element solve per distinct neighbourhood (a square patch has 8: four edges, four
+    corners), cached in memory.  Member-1 scales use the point reflection of eq. (13).
+    """
+    model = model or SubstrateModel()
+    d = patch.design
+    tiling = d.tiling or ""
+    cal = calibrate(d, model)
+    ring1 = ring1_offsets(d.shape, tiling, d.gap)
+    index = {tuple(s) for s in patch.sites.tolist()}
+    cross = bool(model.cross_terms and model.nu < 0.5)
+    out = np.empty((patch.n_scales, 5, 5))
+    for k, (i, j, m) in enumerate(patch.sites.tolist()):
+        # A member-1 scale sees its neighbourhood point-reflected onto a member-0 one.
+        offsets = ring1 if m == 0 else tuple((-a, -b, 1 - c) for a, b, c in ring1)
+        present = tuple(o for o in offsets if (i + o[0], j + o[1], o[2]) in index)
+        if len(present) == len(offsets):
+            out[k] = cal.K0[m]
+            continue
+        as0 = present if m == 0 else tuple((-a, -b, 1 - c) for a, b, c in present)
+        key = (d.shape, tiling, d.gap, model.nu, model.refinement, cross, as0)
+        if key not in _LOCAL_BLOCKS:
+            _LOCAL_BLOCKS[key] = local_self_block(
+                d.shape, tiling, d.gap, model.nu, model.refinement, as0, cross
+            )
+        out[k] = _LOCAL_BLOCKS[key] if m == 0 else R180 @ _LOCAL_BLOCKS[key] @ R180
+    return out
+
+
+def factor_stiffness(K: sp.spmatrix):
+    """Sparse LDL' factorisation of a symmetric K (qdldl, approximate minimum degree ordering).
+
+    Returns the qdldl solver (``.solve(b)`` gives K^-1 b) and the pivots D; fill-in for the
+    banded-like stiffness of a patch grows like n^1.5 in the number of scales, never n^2.
+    Raises QpscaleError if a pivot is exactly zero.
+    """
+    import qdldl
+
+    try:
+        solver = qdldl.Solver(sp.csc_matrix(K))
+    except (RuntimeError, ValueError) as exc:
+        raise QpscaleError(f"substrate stiffness is singular ({exc})") from exc
+    return solver, np.asarray(solver.factors()[1])
 
 
 def check_positive_definite(K: sp.spmatrix) -> None:
-    """Raise QpscaleError unless K is symmetric positive definite (dense Cholesky)."""
-    dense = K.toarray()
-    if not np.allclose(dense, dense.T, rtol=0.0, atol=1e-12 * np.abs(dense).max()):
+    """Raise QpscaleError unless K is symmetric positive definite.
+
+    Sparse: symmetry from K - K' (stored entries only), definiteness from the signs of the LDL'
+    pivots (Sylvester's law of inertia: K is positive definite iff every pivot is positive).
+    """
+    K = sp.csc_matrix(K)
+    big = float(abs(K).max()) if K.nnz else 0.0
+    skew = abs(K - K.T)
+    if skew.nnz and float(skew.max()) > 1e-12 * big:
         raise QpscaleError("substrate stiffness is not symmetric")
+    bad = QpscaleError(
+        "substrate stiffness is not positive definite (lower the threshold or raise the refinement)"
+    )
     try:
-        np.linalg.cholesky(dense)
-    except np.linalg.LinAlgError as exc:
-        raise QpscaleError(
-            "substrate stiffness is not positive definite (lower the threshold or raise the refinement)"
-        ) from exc
+        _, D = factor_stiffness(K)
+    except QpscaleError as exc:
+        raise bad from exc
+    if not np.all(D > 0.0):
+        raise bad
 
 
 def stiffness_matrix(patch: Patch, model: SubstrateModel | None = None) -> sp.csc_matrix:
@@ -187,7 +281,8 @@ def stiffness_matrix(patch: Patch, model: SubstrateModel | None = None) -> sp.cs
             K_iso = 0.5 * (K_iso + K_iso.T)
             K = sp.csc_matrix(np.diag(np.diag(K_iso)) if model.fidelity == "springs" else K_iso)
         else:
-            K = assemble(patch, calibrate(d, model), model.threshold, model.coupling)
+            own = local_self_blocks(patch, model) if model.edges == "local" else None
+            K = assemble(patch, calibrate(d, model), model.threshold, model.coupling, own)
         check_positive_definite(K)
         _MATRIX_CACHE[key] = K
     return _MATRIX_CACHE[key].copy()
