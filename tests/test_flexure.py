@@ -99,7 +99,8 @@ def test_removing_the_scales_recovers_the_bare_membrane():
     # stretched mesh (elements down to 0.005 x 1 L). Its C_f* must lie in the bare membrane's in-plane
     # refinement band at the same n_z, between the uniform h = 1 and h = 0.25 meshes (C_f* rises with
     # in-plane refinement, membrane.md sec. 9): the stretched elements neither lock nor lose stiffness.
-    scaled = build_model(FlexureSetup(mode="scaled", membrane=GRADED, increments=1))
+    # (gap_elements=None: uniform layers, the gap one element wide; the test is about the in-plane grading.)
+    scaled = build_model(FlexureSetup(mode="scaled", membrane=GRADED, increments=1, gap_elements=None))
     assert scaled.patch.n_scales == 25
     on_scaled_mesh = run_flexure(FlexureSetup(mode="bare", membrane=GRADED, increments=1), mesh=scaled.mm)
     coarse = run_flexure(FlexureSetup(mode="bare", membrane=COARSE, increments=1))
@@ -285,6 +286,9 @@ def test_setup_validation():
     assert FlexureSetup(solver="osqp", formulation="feature").formulation == "feature"
     assert FlexureSetup(solver="osqp", mode="bare").formulation == "plane"  # no scales, no rows
     assert FlexureSetup().formulation == "plane"
+    for bad in (0, 2.5, 65):
+        with pytest.raises(InvalidDesign, match="gap_elements"):
+            FlexureSetup(gap_elements=bad)
 
 
 @pytest.mark.slow
@@ -312,3 +316,20 @@ def test_roller_zone_grows_until_no_node_without_a_row_penetrates():
     assert narrow.max_penetration <= 1e-9
     assert len(narrow.extras["model"].support_idx) < len(wide.extras["model"].support_idx)
     assert narrow.Cf_star == pytest.approx(wide.Cf_star, rel=1e-7)
+
+
+def test_json_error_estimate_brackets_a_finer_mesh():
+    # ``qpscale flexure --json`` reports Cf_star_error, the two-level estimate from the companion mesh
+    # (twice the layers, half the contact size; membrane.md sec. 9c). On the coarse bare membrane (h 1,
+    # nz 2: 10.26, companion 9.47) the mesh refined once more (nz 8) lies inside the bracket.
+    from qpscale.api import flexure
+    from qpscale.experiments.flexure import compliance_error, refined
+
+    report = flexure(bare=True, mesh_h=1.0)
+    p = report.payload
+    assert p["Cf_star_error"] == pytest.approx(compliance_error(p["Cf_star"], p["Cf_star_refined"])[0])
+    assert p["Cf_star_error"] > 0
+    setup = report.result.extras["model"].setup
+    finer = run_flexure(refined(refined(setup))).Cf_star
+    assert abs(finer - p["Cf_star"]) <= p["Cf_star_error"]
+    assert flexure(bare=True, mesh_h=1.0, error=False).payload["Cf_star_error"] is None
