@@ -324,7 +324,7 @@ def run_all(
 
     Returns the JSON payload of ``qpscale bench`` (docs/cli.md contract plus extras).
     """
-    from .bench import default_methods, full_scenes, quick_scenes, run_bench, skipped_methods
+    from .bench import default_methods, flexure_section, full_scenes, quick_scenes, run_bench, skipped_methods
 
     out.mkdir(parents=True, exist_ok=True)
     scenes = quick_scenes() if quick else full_scenes()
@@ -346,6 +346,7 @@ def run_all(
         "workers": workers,
         "out": str(out),
     }
+    payload["flexure"] = flexure_section(quick, out)  # flexure time against accuracy (bench.py)
     if not quick and fuzz_n > 0:
         n_others = max(fuzz_n // 10, 1)
         fz = fuzz(
