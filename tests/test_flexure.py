@@ -227,7 +227,9 @@ def test_contact_forces_only_where_scales_touch(square_x):
 
 
 def test_graded_mesh_resolves_the_gap():
-    # With the graded mesh the free strip between two bonded footprints is exactly the gap d.
+    # With the graded mesh the free strip between two bonded footprints is exactly the gap d, cut into
+    # gap_elements = 2 elements of d/2 (a free node line in the middle), and the top layer is d/2
+    # (membrane.md sec. 9c).
     from qpscale.experiments.flexure import build_model
 
     model = build_model(FlexureSetup(mode="scaled", membrane=GRADED, increments=1))
@@ -235,7 +237,17 @@ def test_graded_mesh_resolves_the_gap():
     d = model.setup.design.gap
     c = model.patch.centroids[:, 1]
     edge = 0.5 * (np.unique(np.round(c, 9))[0] + np.unique(np.round(c, 9))[1])
-    assert np.min(np.abs(y - (edge - d / 2))) < 1e-9 and np.min(np.abs(y - (edge + d / 2))) < 1e-9
+    inside = y[(y > edge - d / 2 - 1e-9) & (y < edge + d / 2 + 1e-9)]
+    np.testing.assert_allclose(inside, edge + np.array([-d / 2, 0.0, d / 2]), atol=1e-9)
+    z = np.unique(np.round(model.mm.nodes[:, 2], 12))
+    # Eq. (1) from d/2 with growth gamma: the first layer is at most (e^(gamma-1) - 1) / (gamma - 1) d/2
+    # (the integral of 1/s over it is 1, or less once the layer count is rounded up).
+    g = GRADED.growth
+    assert d / 2 < z[-1] - z[-2] <= (np.exp(g - 1) - 1) / (g - 1) * d / 2 * (1 + 1e-3)
+    # The middle line's top nodes are free (bonded to no scale): the membrane surface in the gap.
+    top = model.mm.face_nodes(True)
+    mid = top[np.abs(model.mm.nodes[top, 1] - edge) < 1e-9]
+    assert len(mid) > 0 and not np.any(model.cond.T[3 * mid + 2].toarray()[:, -model.n_q :])
 
 
 def test_vtk_series_loads_back(square_x, tmp_path):
