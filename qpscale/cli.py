@@ -70,7 +70,7 @@ RANGES: dict[str, str] = {
     "--mesh-h": "[0.05, 2] L, within the memory and time limits",
     "--formulation": "{plane, feature}",
     "--roller-radius": "(0, 3.75) L (half the span less the plate's width)",
-    "--top-h": "(0, 1.5 / layers] L (default: uniform layers)",
+    "--top-h": "(0, 1.5 / layers] L (default: d / 2 with scales, uniform layers bare)",
     "--refinement": "integers in [2, 16]",
     "--workers": "integers from 1 to the number of cores (paper: 1 or 2)",
     "--scene-time-limit": "[0, inf) s, 0 for none",

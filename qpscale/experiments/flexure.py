@@ -254,16 +254,15 @@ def mesh_membrane(setup: FlexureSetup, patch: Patch | None) -> MembraneModel:
     """The membrane model the mesh is built from (membrane.md sec. 9c).
 
     With scales, a gap d > 0 and ``gap_elements = n``: the size at the graded lines and the top
-    layer are ``d / n`` (an explicit ``top_h`` of the model is kept if it is thinner); otherwise
-    the model as given.
+    layer are ``d / n`` (a ``top_h`` given in the model is kept); otherwise the model as given.
     """
     n, d = setup.gap_elements, setup.design.gap
     if patch is None or n is None or d <= 0.0:
         return setup.membrane
     mem = setup.membrane
     size = d / n
-    top = size if mem.top_h is None else min(mem.top_h, size)
-    return replace(mem, h_min=min(size, mem.h), top_h=min(top, mem.height / mem.nz))
+    top = min(size, mem.height / mem.nz) if mem.top_h is None else mem.top_h
+    return replace(mem, h_min=min(size, mem.h), top_h=top)
 
 
 def _gap_interior(lines: tuple[float, ...], gap: float, n: int | None) -> tuple[float, ...]:
