@@ -345,3 +345,37 @@ def test_json_error_estimate_brackets_a_finer_mesh():
     finer = run_flexure(refined(refined(setup))).Cf_star
     assert abs(finer - p["Cf_star"]) <= p["Cf_star_error"]
     assert flexure(bare=True, mesh_h=1.0, error=False).payload["Cf_star_error"] is None
+
+
+def test_damped_level_weights_the_pressed_planes():
+    # The damped retry (membrane.md sec. 8) puts FLEXURE_DAMPING * kappa * F_j on a pressed plane's two
+    # rotation unknowns and PLANE_PROX elsewhere; the undamped level PLANE_PROX everywhere.
+    from qpscale.experiments.flexure import FLEXURE_DAMPING, _FlexureLevel
+    from qpscale.increment import PLANE_DAMPING, PLANE_PROX
+
+    model = build_model(FlexureSetup(mode="scaled", membrane=GRADED, increments=1, gap_elements=None))
+    z = np.zeros(len(model.cond.retained))
+    plain = _FlexureLevel(model, 0.04, 1)
+    cs = plain.linearise(z, None, None)[3]
+    assert cs is not None and cs.planes is not None and cs.planes.count > 0
+    damped = _FlexureLevel(model, 0.04, 1, damped=True)
+    key = cs.planes.keys[0]
+    damped.damping.force = {key: 0.02}
+    n = len(z)
+    P_plain = plain.linearise(z, cs, None)[1].P.diagonal()[n:].reshape(-1, 3)
+    P_damped = damped.linearise(z, cs, None)[1].P.diagonal()[n:].reshape(-1, 3)
+    np.testing.assert_allclose(P_plain, PLANE_PROX)
+    np.testing.assert_allclose(P_damped[0, :2], FLEXURE_DAMPING * PLANE_DAMPING * 0.02)
+    np.testing.assert_allclose(P_damped[1:], PLANE_PROX)
+    assert P_damped[0, 2] == PLANE_PROX
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("tiling,slant_dir", [("arrayed", 0.0), ("staggered", 90.0)])
+def test_slanted_triangle_arrays_converge_on_load_line_y(tiling, slant_dir):
+    # Two of the three curves that failed on rollers (membrane.md sec. 8): a plane hinged on a line of
+    # contact cycles or wanders undamped; the damped retry (other_plane_update) converges them.
+    design = Design(shape="triangle", tiling=tiling, slant_deg=60.0, slant_dir_deg=slant_dir)
+    r = run_flexure(FlexureSetup(design=design, load_line="y"))
+    assert r.max_penetration < 1e-9 and 0 < r.Cf_star < 8.0
+    assert any(e.rescue == "other_plane_update" for e in r.extras["rescues"])

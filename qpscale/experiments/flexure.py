@@ -40,6 +40,11 @@ MAX_ITER = 60
 ROW_MEMORY = 4  # linearisations whose contact rows stay in the QP (_merge_rows)
 RELEASE_TOL = 1e-9  # E_m L^2: a held support DOF whose reaction pulls harder is released (sec. 7)
 MAX_RELEASE_ROUNDS = 20
+# The damped planes' weight kappa F_j (increment.md eq. (4c), kappa = 1 L) is sized for puncture, where a
+# contact force over the scales' stiffness is 0.1 L or more.  Here it is about 1e-4 L (forces of 1e-2
+# E_m L^2, diagonal of S 70-200 E_m L for the scale DOFs: the membrane in the gaps), so the weight is
+# scaled up by this factor to hold a hinged plane comparably firmly (membrane.md sec. 8).
+FLEXURE_DAMPING = 100.0
 
 
 @dataclass(frozen=True)
@@ -641,7 +646,12 @@ class _FlexureLevel:
         if self.model.setup.formulation == "feature":
             self.history = [*self.history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
             Gc, hc, merged = _merge_rows(self.model, self.history, z)
-        weight = self.damping.weights(cs) if self.damped and cs is not None and cs.n_extra else None
+        weight = None
+        if self.damped and cs is not None and cs.n_extra:
+            w = self.damping.weights(cs).reshape(-1, 3)
+            pressed = w[:, :2] > PLANE_PROX  # weights() floors the others at PLANE_PROX: kept there
+            w[:, :2] = np.where(pressed, FLEXURE_DAMPING * w[:, :2], PLANE_PROX)
+            weight = w.ravel()
         qp = _membrane_qp(self.model.S, Gp, hp, self.Gs, self.model.support_gap, Gc, hc, weight)
         return z, qp, len(hp), cs, merged
 
