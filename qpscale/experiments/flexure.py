@@ -25,7 +25,7 @@ from ..errors import InvalidDesign, SolverFailure
 from ..events import Rescue
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
 from ..increment import PLANE_PROX, PlaneDamping, _pinned_only
-from ..level import LevelControls, LevelOutcome, Progress, Step, qp_step
+from ..level import LevelControls, LevelOutcome, LevelStatus, Progress, Step, qp_step
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
 from ..tiling import Design, Patch, build_patch
@@ -706,14 +706,19 @@ def solve_position(
     (:func:`qpscale.level.solve`): Anderson-accelerated while the rows are unchanged, the
     ``stall_tighten`` and ``qp_retry`` rescues recorded in the outcome (increment.md sec. 5).
 
-    A position whose plain (undamped) iteration fails with separating planes is solved again
-    from the same start with the planes' trust region (``increment.PlaneDamping``; membrane.md
-    sec. 8, the hinge 2-cycle of the slanted triangle arrays), the ``other_plane_update`` rescue
-    of puncture; a converged state is a fixed point of both updates.  Failing both ways, the
-    first attempt's failure is reported.
+    A position whose plain (undamped) iteration does not converge with separating planes is
+    solved again from the same start with the planes' trust region (``increment.PlaneDamping``
+    weighted by ``FLEXURE_DAMPING``; membrane.md sec. 8, the hinged planes of the slanted triangle
+    arrays), the ``other_plane_update`` rescue of puncture; a converged state is a fixed point of
+    both updates.  A QP the backend failed is not retried (no trust region cures it).  Failing
+    both ways, the first attempt's failure is reported.
     """
     first = level.solve(_FlexureLevel(model, w, inc), z, previous)
-    if first.converged or model.setup.formulation != "plane" or model.patch is None:
+    if (
+        first.status is not LevelStatus.NOT_CONVERGED
+        or model.setup.formulation != "plane"
+        or model.patch is None
+    ):
         return first
     second = level.solve(_FlexureLevel(model, w, inc, damped=True), z, previous)
     if not second.converged:
