@@ -660,9 +660,11 @@ def flexure(
     formulation: str = "plane",
     roller_radius: float = 0.5,
     top_h: float | None = None,
+    error: bool = True,
     vtk: str | Path | None = None,
     max_memory_gb: float | None = None,
     max_minutes: float | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> FlexureReport:
     """Three-point bending of the membrane (10 L x 10 L x 1.5 L, span 8 L): bare, one scale, or
     covered with scales; the compliance C_f* and the force-deflection curve.
@@ -688,13 +690,20 @@ def flexure(
         +-4 L: the span of 8 L, formulations/membrane.md sec. 1).
     top_h : float or None
         Thickness of the top layer when the layers are graded towards the top face, in L,
-        (0, 1.5 / layers]; None: uniform layers.
+        (0, 1.5 / layers]; None: the default (with scales, the top layer is d / 2, membrane.md
+        sec. 9c; bare membrane: uniform layers).
+    error : bool
+        Estimate the discretisation error of C_f*: the curve is run again on the companion mesh
+        (twice the layers and the elements across each gap, formulations/membrane.md sec. 9c) and
+        ``Cf_star_error`` is the two-level Richardson estimate (about three times the run time).
     vtk : path or None
         Directory for a ParaView series; created before the run.
     max_memory_gb : float or None
         Refuse a mesh whose estimated memory exceeds this (default ``$QPSCALE_MAX_MEMORY_GB`` or 4).
     max_minutes : float or None
         Refuse a mesh whose estimated time exceeds this (default ``$QPSCALE_MAX_MINUTES`` or 60).
+    progress : callable or None
+        Called with a short message as each curve starts.
 
     Returns
     -------
@@ -720,12 +729,13 @@ def flexure(
     vtk_dir = v.output_dir("vtk", vtk) if vtk is not None else None
     nz = max(2, int(round(1.5 / h)))
     top = None if top_h is None else v.real("top_h", top_h, 0.0, 1.5 / nz, lo_open=True, unit="L")
-    v.memory(v.flexure_memory_gb(h, nz), v.max_memory_gb(max_memory_gb), "mesh_h", h, "the membrane mesh")
-    v.duration(v.flexure_time_s(h, nz), v.max_minutes(max_minutes), "mesh_h", h, "the membrane mesh")
+    check = 2 * nz if error else nz  # the companion mesh of the error estimate has twice the layers
+    v.memory(v.flexure_memory_gb(h, check), v.max_memory_gb(max_memory_gb), "mesh_h", h, "the membrane mesh")
+    v.duration(v.flexure_time_s(h, check), v.max_minutes(max_minutes), "mesh_h", h, "the membrane mesh")
     design = _design(values, DEFAULT_RINGS)
     mode = "bare" if bare else "isolated" if isolated else "scaled"
 
-    from .experiments.flexure import FlexureSetup, run_flexure
+    from .experiments.flexure import FlexureSetup, compliance_error, refined, run_flexure
     from .membrane import MembraneModel
 
     setup = FlexureSetup(
@@ -737,11 +747,19 @@ def flexure(
         formulation=form,
         roller_radius=radius,
     )
+    if progress:
+        progress("curve")
     result = run_flexure(setup)
+    if progress and error:
+        progress("companion mesh (error estimate)")
+    fine = run_flexure(refined(setup)) if error else None
+    err = compliance_error(result.Cf_star, fine.Cf_star)[0] if fine is not None else None
     payload: dict[str, Any] = {
         "Cf_star": result.Cf_star,
+        "Cf_star_error": err,
+        "Cf_star_refined": None if fine is None else fine.Cf_star,
         "curve": {"deflection_star": result.deflection.tolist(), "F_star": result.force.tolist()},
-        "wall_s": result.wall_s,
+        "wall_s": result.wall_s + (0.0 if fine is None else fine.wall_s),
         "mode": mode,
         "shape": None if bare else design.shape,
         "tiling": None if bare else design.tiling,
@@ -754,6 +772,7 @@ def flexure(
         "formulation": setup.formulation,
         "roller_radius": setup.roller_radius,
         "top_h": top,
+        "gap_elements": setup.gap_elements if mode != "bare" else None,
         "mesh_h": h,
         "nz": nz,
     }

@@ -71,7 +71,7 @@ RANGES: dict[str, str] = {
     "--mesh-h": "[0.05, 2] L, within the memory and time limits",
     "--formulation": "{plane, feature}",
     "--roller-radius": "(0, 3.75) L (half the span less the plate's width)",
-    "--top-h": "(0, 1.5 / layers] L (default: uniform layers)",
+    "--top-h": "(0, 1.5 / layers] L (default: d / 2 with scales, uniform layers bare)",
     "--refinement": "integers in [2, 16]",
     "--workers": "integers from 1 to the number of cores (paper: 1 or 2)",
     "--scheduler": "a Dask scheduler address, e.g. tcp://host:8786 (not with --workers)",
@@ -549,6 +549,11 @@ def flexure(
     top_h: float | None = typer.Option(
         None, "--top-h", help=_help("--top-h", "Grade the layers from this thickness at the top face.")
     ),
+    error: bool = typer.Option(
+        True,
+        "--error/--no-error",
+        help="Estimate C_f*'s discretisation error on a refined companion mesh (about 3x the time).",
+    ),
     max_memory_gb: float | None = MemoryOpt,
     max_minutes: float | None = MinutesOpt,
     as_json: bool = JsonOpt,
@@ -556,32 +561,38 @@ def flexure(
     """Flexure: three-point bending of the membrane (bare, one scale, or covered), C_f*."""
     from .api import flexure as run
 
-    report = run(
-        shape,
-        tiling,
-        slant,
-        slant_dir,
-        gap,
-        thickness,
-        load_line=load_line,
-        isolated=isolated,
-        bare=bare,
-        nu_m=nu_m,
-        mesh_h=mesh_h,
-        solver=solver,
-        formulation=formulation,
-        roller_radius=roller_radius,
-        top_h=top_h,
-        vtk=vtk,
-        max_memory_gb=max_memory_gb,
-        max_minutes=max_minutes,
-    )
+    with _progress("flexure") as bar:
+        task = bar.add_task("flexure", total=None)
+        report = run(
+            shape,
+            tiling,
+            slant,
+            slant_dir,
+            gap,
+            thickness,
+            load_line=load_line,
+            isolated=isolated,
+            bare=bare,
+            nu_m=nu_m,
+            mesh_h=mesh_h,
+            solver=solver,
+            formulation=formulation,
+            roller_radius=roller_radius,
+            top_h=top_h,
+            error=error,
+            vtk=vtk,
+            max_memory_gb=max_memory_gb,
+            max_minutes=max_minutes,
+            progress=lambda msg: bar.update(task, description=f"flexure: {msg}"),
+        )
 
     def summary(p: dict[str, Any]) -> None:
         design = "membrane" if p["mode"] == "bare" else f"{p['shape']} ({p['tiling']})"
         console.print(
             f"[bold]{p['mode']}[/] {design}, load line {p['load_line']}: "
-            f"C_f* = {_fmt(p['Cf_star'], '.5g')}, {p['n_scales']} scales, {_fmt(p['wall_s'], '.2f')} s"
+            f"C_f* = {_fmt(p['Cf_star'], '.5g')}"
+            + (f" ± {_fmt(p['Cf_star_error'], '.2g')}" if p["Cf_star_error"] is not None else "")
+            + f", {p['n_scales']} scales, {_fmt(p['wall_s'], '.2f')} s"
         )
 
     finish(report, as_json, summary)

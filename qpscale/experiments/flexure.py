@@ -24,8 +24,8 @@ from ..contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Rescue
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
-from ..increment import PLANE_PROX, _pinned_only
-from ..level import LevelControls, LevelOutcome, Progress, Step, qp_step
+from ..increment import PLANE_PROX, PlaneDamping, _pinned_only
+from ..level import LevelControls, LevelOutcome, LevelStatus, Progress, Step, qp_step
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
 from ..tiling import Design, Patch, build_patch
@@ -40,6 +40,11 @@ MAX_ITER = 60
 ROW_MEMORY = 4  # linearisations whose contact rows stay in the QP (_merge_rows)
 RELEASE_TOL = 1e-9  # E_m L^2: a held support DOF whose reaction pulls harder is released (sec. 7)
 MAX_RELEASE_ROUNDS = 20
+# The damped planes' weight kappa F_j (increment.md eq. (4c), kappa = 1 L) is sized for puncture, where a
+# contact force over the scales' stiffness is 0.1 L or more.  Here it is about 1e-4 L (forces of 1e-2
+# E_m L^2, diagonal of S 70-200 E_m L for the scale DOFs: the membrane in the gaps), so the weight is
+# scaled up by this factor to hold a hinged plane comparably firmly (membrane.md sec. 8).
+FLEXURE_DAMPING = 100.0
 
 
 @dataclass(frozen=True)
@@ -80,6 +85,11 @@ class FlexureSetup:
         (formulations/contact.md sections 7 and 3-6; membrane.md sec. 8).
     grade : bool
         Mesh lines at the scales' axis-parallel edges, graded towards the gaps (False: uniform).
+    gap_elements : int or None
+        Elements across each gap between bonded footprints (scaled and isolated modes, gap d > 0):
+        the element size at the graded lines and the top layer are both ``d / gap_elements``, so
+        the membrane under a gap is resolved in both directions (membrane.md sec. 9c).  None: the
+        membrane model's ``h_min`` and ``top_h`` as given (the gap is then one element wide).
     solver : str
         QP backend.
     """
@@ -100,6 +110,7 @@ class FlexureSetup:
     contact: bool = True
     formulation: str = "plane"
     grade: bool = True
+    gap_elements: int | None = 2
     solver: str = "clarabel"
 
     def __post_init__(self) -> None:
@@ -131,6 +142,9 @@ class FlexureSetup:
             ("max_deflection", self.max_deflection, 0 < self.max_deflection <= 1.0),
             ("increments", self.increments, 1 <= int(self.increments) == self.increments <= 200),
         ]
+        if self.gap_elements is not None:
+            n = self.gap_elements
+            checks.append(("gap_elements", n, 1 <= int(n) == n <= 64))
         for name, value, ok in checks:
             if not ok:
                 raise InvalidDesign(name, value, "a positive value that fits the membrane")
@@ -223,20 +237,47 @@ def _mesh(setup: FlexureSetup, patch: Patch | None) -> MembraneMesh:
     """
     s, wp, ws = setup.span / 2, setup.plate_width / 2, setup.support_width / 2
     xe, ye = _edge_lines(patch) if patch is not None and setup.grade else ((), ())
-    h_gap = setup.membrane.h_min
+    mem = mesh_membrane(setup, patch)
+    h_gap = mem.h_min
     fine, fine_h = tuple(ye if setup.axis == 1 else xe), [h_gap] * len(ye if setup.axis == 1 else xe)
+    inside = _gap_interior(fine, setup.design.gap, setup.gap_elements) if mem is not setup.membrane else ()
     if setup.supports == "strip":
         cuts: tuple[float, ...] = (-s - ws, -s + ws, s - ws, s + ws, -wp, wp)
     else:
         cuts = (-wp, wp)
         lines = (-s, s) if patch is not None else (-s, s, -wp, wp)
         fine, fine_h = fine + lines, fine_h + [setup.contact_h] * len(lines)
-    other = xe if setup.axis == 1 else ye
+    other, cuts = xe if setup.axis == 1 else ye, cuts + inside
     if setup.axis == 1:
         args = {"xbreaks": other, "ybreaks": cuts, "yfine": fine, "yfine_h": tuple(fine_h)}
     else:
         args = {"xbreaks": cuts, "ybreaks": other, "xfine": fine, "xfine_h": tuple(fine_h)}
-    return MembraneMesh(setup.membrane, build_mesh(setup.membrane, **args))
+    return MembraneMesh(mem, build_mesh(mem, **args))
+
+
+def mesh_membrane(setup: FlexureSetup, patch: Patch | None) -> MembraneModel:
+    """The membrane model the mesh is built from (membrane.md sec. 9c).
+
+    With scales, a gap d > 0 and ``gap_elements = n``: the size at the graded lines and the top
+    layer are ``d / n`` (a ``top_h`` given in the model is kept); otherwise the model as given.
+    """
+    n, d = setup.gap_elements, setup.design.gap
+    if patch is None or n is None or d <= 0.0:
+        return setup.membrane
+    mem = setup.membrane
+    size = d / n
+    top = min(size, mem.height / mem.nz) if mem.top_h is None else mem.top_h
+    return replace(mem, h_min=min(size, mem.h), top_h=top)
+
+
+def _gap_interior(lines: tuple[float, ...], gap: float, n: int | None) -> tuple[float, ...]:
+    """``n - 1`` equally spaced lines inside every gap between two graded lines ``gap`` apart, so
+    that each gap is ``n`` elements of ``d / n`` (the grading alone rounds their number)."""
+    if n is None or n < 2 or gap <= 0.0:
+        return ()
+    x = np.unique(np.round(np.asarray(lines, dtype=float), 9))
+    a = x[:-1][np.abs(np.diff(x) - gap) < 1e-7]
+    return tuple((a[:, None] + gap * np.arange(1, n)[None, :] / n).ravel().tolist())
 
 
 def _edge_lines(patch: Patch) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -588,11 +629,12 @@ class _FlexureLevel:
     attempt's memory).
     """
 
-    def __init__(self, model: FlexureModel, w: float, inc: int) -> None:
+    def __init__(self, model: FlexureModel, w: float, inc: int, damped: bool = False) -> None:
         setup = model.setup
         top = setup.membrane.height + (setup.design.thickness if model.patch is not None else 0.0)
         n, ns = len(model.cond.retained), len(model.support_idx)
         self.model, self.w, self.z_plate = model, w, top - w
+        self.damped, self.damping = damped, PlaneDamping()
         self.Gs = sp.csr_matrix((-np.ones(ns), (np.arange(ns), model.support_idx)), shape=(ns, n))
         self.controls = LevelControls(setup.solver, w, inc, STEP_TOL, PENETRATION_TOL, MAX_ITER)
         self.history: list[tuple[sp.csr_matrix, Array, ContactSet | None]] = []
@@ -604,7 +646,13 @@ class _FlexureLevel:
         if self.model.setup.formulation == "feature":
             self.history = [*self.history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
             Gc, hc, merged = _merge_rows(self.model, self.history, z)
-        qp = _membrane_qp(self.model.S, Gp, hp, self.Gs, self.model.support_gap, Gc, hc)
+        weight = None
+        if self.damped and cs is not None and cs.n_extra:
+            w = self.damping.weights(cs).reshape(-1, 3)
+            pressed = w[:, :2] > PLANE_PROX  # weights() floors the others at PLANE_PROX: kept there
+            w[:, :2] = np.where(pressed, FLEXURE_DAMPING * w[:, :2], PLANE_PROX)
+            weight = w.ravel()
+        qp = _membrane_qp(self.model.S, Gp, hp, self.Gs, self.model.support_gap, Gc, hc, weight)
         return z, qp, len(hp), cs, merged
 
     def solve(self, lin: _Linearised, tightened: bool) -> Step[FlexureState]:
@@ -615,8 +663,10 @@ class _FlexureLevel:
             return step
         n, lam = len(z), np.asarray(res.z[n_plate + len(self.model.support_idx) :])
         if cs is not None and cs.planes is not None and cs.planes.count:
-            theta = _pinned_only(res.x[n:], cs, lam)
+            theta = _pinned_only(res.x[n:], cs, lam, violated=self.damped)
             cs = merged = replace(cs, plane_memory=cs.planes.advanced(theta))
+            if self.damped:
+                self.damping.update(cs, theta, lam)
         answer = FlexureState(self.w, float(np.sum(res.z[:n_plate])), z, merged, lam, 0, 0.0)
         labels = _set_keys(merged, self.model.setup.formulation)
         return replace(step, answer=answer, dx=res.x[:n] - z, rows=cs, labels=labels)
@@ -629,13 +679,21 @@ class _FlexureLevel:
 
 
 def _membrane_qp(
-    S: sp.csc_matrix, Gp: Array, hp: Array, Gs: sp.csr_matrix, hs: Array, Gc: sp.csr_matrix, hc: Array
+    S: sp.csc_matrix,
+    Gp: Array,
+    hp: Array,
+    Gs: sp.csr_matrix,
+    hs: Array,
+    Gc: sp.csr_matrix,
+    hc: Array,
+    plane_weight: Array | None = None,
 ) -> IncrementQP:
     """QP (13) over ``(z, theta)``: plate, support (``Gs z <= hs``) and contact rows; ``PLANE_PROX``
-    on the planes."""
+    on the planes, or the damped planes' weights ``plane_weight`` (increment.md sec. 4b)."""
     n = Gs.shape[1]
     extra = Gc.shape[1] - n
-    P = sp.block_diag([S, PLANE_PROX * sp.identity(extra)], format="csc") if extra else S
+    w = np.full(extra, PLANE_PROX) if plane_weight is None else np.asarray(plane_weight, dtype=float)
+    P = sp.block_diag([S, sp.diags(w)], format="csc") if extra else S
     pad = sp.csr_matrix((Gp.shape[0] + Gs.shape[0], extra))
     G = sp.vstack([sp.hstack([sp.vstack([sp.csr_matrix(Gp), Gs]), pad]), Gc], format="csc")
     return IncrementQP(P, np.zeros(n + extra), G, np.r_[hp, hs, hc])
@@ -646,8 +704,57 @@ def solve_position(
 ) -> LevelOutcome[FlexureState]:
     """The sequential QP at one plate position, eq. (13), by the level driver
     (:func:`qpscale.level.solve`): Anderson-accelerated while the rows are unchanged, the
-    ``stall_tighten`` and ``qp_retry`` rescues recorded in the outcome (increment.md sec. 5)."""
-    return level.solve(_FlexureLevel(model, w, inc), z, previous)
+    ``stall_tighten`` and ``qp_retry`` rescues recorded in the outcome (increment.md sec. 5).
+
+    A position whose plain (undamped) iteration does not converge with separating planes is
+    solved again from the same start with the planes' trust region (``increment.PlaneDamping``
+    weighted by ``FLEXURE_DAMPING``; membrane.md sec. 8, the hinged planes of the slanted triangle
+    arrays), the ``other_plane_update`` rescue of puncture; a converged state is a fixed point of
+    both updates.  A QP the backend failed is not retried (no trust region cures it).  Failing
+    both ways, the first attempt's failure is reported.
+    """
+    first = level.solve(_FlexureLevel(model, w, inc), z, previous)
+    if (
+        first.status is not LevelStatus.NOT_CONVERGED
+        or model.setup.formulation != "plane"
+        or model.patch is None
+    ):
+        return first
+    second = level.solve(_FlexureLevel(model, w, inc, damped=True), z, previous)
+    if not second.converged:
+        return replace(first, rescues=first.rescues + second.rescues)
+    fired = Rescue("other_plane_update", w, inc, "damped")
+    return replace(second, rescues=first.rescues + (fired,) + second.rescues)
+
+
+#: Order of the companion estimate (membrane.md sec. 9c): the gap's corners, where a bonded footprint
+#: meets the free surface, carry stresses ~ r^(-1/2) (incompressible membrane), so the energy error of
+#: a mesh refined by 2 there falls by 2^(2 x 1/2); measured 0.7-0.9 on the square array.
+ERROR_ORDER = 1.0
+
+
+def refined(setup: FlexureSetup) -> FlexureSetup:
+    """The companion mesh of the error estimate (membrane.md sec. 9c): twice the layers, twice the
+    elements across each gap (and half an explicit top layer), half the size at the rollers."""
+    mem = setup.membrane
+    top = None if mem.top_h is None else mem.top_h / 2
+    n = None if setup.gap_elements is None else 2 * setup.gap_elements
+    mem = replace(mem, nz=2 * mem.nz, top_h=top)
+    return replace(setup, membrane=mem, gap_elements=n, contact_h=setup.contact_h / 2)
+
+
+def compliance_error(coarse: float, fine: float, order: float = ERROR_ORDER) -> tuple[float, float]:
+    """Error estimate of ``coarse`` and the extrapolated C_f* from a mesh and its ``refined`` companion.
+
+    Two-level Richardson with a known order p: the limit is ``fine + (fine - coarse) / (2^p - 1)``
+    and the estimate of ``|coarse - limit|`` is ``|fine - coarse| 2^p / (2^p - 1)``.
+
+    >>> compliance_error(0.9, 1.0)
+    (0.2, 1.1)
+    """
+    d = fine - coarse
+    r = 2.0**order - 1.0
+    return round(abs(d) * (r + 1.0) / r, 15), round(fine + d / r, 15)
 
 
 def run_flexure(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> FlexureResult:

@@ -14,6 +14,7 @@ import contextlib
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -401,3 +402,57 @@ def _ratio(t: np.ndarray, ref: np.ndarray | None) -> float | None:
     if ref is None or len(ref) != len(t) or len(t) == 0:
         return None
     return float(np.exp(np.mean(np.log(t / ref))))
+
+
+# --- Flexure: time against accuracy (formulations/membrane.md secs. 9, 9c) --------------------
+# Self-contained: it calls the flexure refinement study, not the puncture scenes and methods above.
+
+#: Cheap bare-membrane meshes of the quick bench (one plate position each, under 2 s together).
+FLEXURE_QUICK_LEVELS = ((1.0, 2, 0.1), (0.5, 3, 0.05))
+
+
+def flexure_section(quick: bool, out: Path | None = None) -> dict:
+    """The flexure table of ``qpscale bench``: per mesh, C_f*, wall time and the relative error.
+
+    Quick: the bare membrane (one plate position) on ``FLEXURE_QUICK_LEVELS`` against its stored
+    converged value (``flexure_bench.BARE_LIMIT``).  Full: the bare membrane's refinement study
+    recomputed (each direction refined twice) and its meshes against it, and the square staggered
+    array along the companion ladder of the default mesh against the ladder's Richardson limit.
+    Writes ``flexure_bench.csv`` into ``out``; returns the JSON payload's ``flexure`` entry.
+    """
+    import pandas as pd
+
+    from ..experiments.flexure import FlexureSetup
+    from .flexure_bench import (
+        BARE_LIMIT,
+        DEFAULT_LEVEL,
+        SCALED_BENCH,
+        MeshLevel,
+        companion_bench,
+        converged_compliance,
+        flexure_bench,
+    )
+
+    bare = FlexureSetup(mode="bare", increments=1)
+    levels = [MeshLevel(h, nz, c) for h, nz, c in FLEXURE_QUICK_LEVELS]
+    payload: dict = {}
+    if quick:
+        reference, error = BARE_LIMIT
+        rows = flexure_bench(bare, levels, reference)
+    else:
+        conv = converged_compliance(bare, DEFAULT_LEVEL)
+        reference, error = conv.Cf_star, conv.error
+        rows = flexure_bench(bare, [*levels, MeshLevel(0.25, 6, 0.025)], conv)
+    for r in rows:
+        r["case"] = "bare"
+    payload["bare"] = {"reference": reference, "reference_error": error}
+    if not quick:
+        scaled, (limit, order, err) = companion_bench(SCALED_BENCH, DEFAULT_LEVEL)
+        for r in scaled:
+            r["case"] = "square staggered x"
+        rows += scaled
+        payload["square_staggered_x"] = {"reference": limit, "order": order, "reference_error": err}
+    payload["rows"] = rows
+    if out is not None:
+        pd.DataFrame(rows).to_csv(out / "flexure_bench.csv", index=False)
+    return payload

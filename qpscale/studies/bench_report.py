@@ -331,7 +331,7 @@ def run_all(
 
     Returns the JSON payload of ``qpscale bench`` (docs/cli.md contract plus extras).
     """
-    from .bench import default_methods, full_scenes, quick_scenes, run_bench
+    from .bench import default_methods, flexure_section, full_scenes, quick_scenes, run_bench
 
     out.mkdir(parents=True, exist_ok=True)
     scenes = quick_scenes() if quick else full_scenes()
@@ -342,6 +342,7 @@ def run_all(
         pd.DataFrame(result.summary).drop(columns="statuses").to_csv(out / "summary.csv", index=False)
         stab = stability_map(quick, out, time_limit, progress, workers, engine)
         payload = _payload(result, stab, quick, time_limit, workers, out, fuzz_n)
+        payload["flexure"] = flexure_section(quick, out)  # flexure time against accuracy (bench.py)
         if not quick and fuzz_n > 0:
             payload["fuzz"] = _fuzz_summary(fuzz_n, out, progress, workers, engine)
     return payload

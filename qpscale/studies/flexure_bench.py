@@ -7,7 +7,8 @@ it) and the element size at the rollers and plate edges ``contact_h`` (the conta
 roller).  Each is refined on its own from a base mesh, three levels by a constant ratio, and
 extrapolated by Richardson; the corrections are added to the base value and their error estimates
 summed.  ``flexure_bench`` is the table ``qpscale bench`` can print: per mesh, C_f*, wall time and
-the error against that extrapolated limit.
+the error against that extrapolated limit.  Covered membranes converge under the companion
+refinement of sec. 9c (layers and elements across each gap doubled together, ``companion_ladder``).
 """
 
 from __future__ import annotations
@@ -17,23 +18,40 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..experiments.flexure import FlexureSetup, run_flexure
+from ..tiling import Design
 
 
 @dataclass(frozen=True)
 class MeshLevel:
-    """One flexure mesh: in-plane size ``h`` (L), ``nz`` layers, ``contact_h`` at rollers/plate (L)."""
+    """One flexure mesh: in-plane size ``h`` (L), ``nz`` layers, ``contact_h`` at rollers/plate (L)
+    and ``gap_elements`` across each gap between scales (membrane.md sec. 9c)."""
 
     h: float
     nz: int
     contact_h: float
+    gap_elements: int | None = 2
 
     def apply(self, setup: FlexureSetup) -> FlexureSetup:
         mem = replace(setup.membrane, h=self.h, nz=self.nz)
-        return replace(setup, membrane=mem, contact_h=self.contact_h)
+        return replace(setup, membrane=mem, contact_h=self.contact_h, gap_elements=self.gap_elements)
+
+    def refined(self) -> MeshLevel:
+        """The companion of the error estimate (``experiments.flexure.refined``)."""
+        n = None if self.gap_elements is None else 2 * self.gap_elements
+        return MeshLevel(self.h, 2 * self.nz, self.contact_h / 2, n)
 
 
-#: The default mesh of ``qpscale flexure`` and the paper study (membrane.md sec. 9).
+#: The default mesh of ``qpscale flexure`` and the paper study (membrane.md secs. 9, 9c).
 DEFAULT_LEVEL = MeshLevel(0.5, 3, 0.05)
+
+#: The bare membrane's converged C_f* and its error estimate (nu 0.4999, rollers r = 0.5 L), from
+#: ``converged_compliance(FlexureSetup(mode="bare", increments=1))`` (membrane.md sec. 9; recomputed
+#: by the slow test of tests/test_flexure_bench.py and by the full ``qpscale bench``).  The quick bench
+#: measures its meshes against it instead of recomputing it (2-3 minutes).
+BARE_LIMIT = (9.67, 0.07)
+
+#: The covered membrane of the flexure bench: the square staggered array, load line x (sec. 9c).
+SCALED_BENCH = FlexureSetup(design=Design(shape="square", tiling="staggered"), load_line="x")
 
 
 def richardson(values: list[float], ratio: float = 2.0) -> tuple[float, float, float]:
@@ -88,6 +106,7 @@ def run_level(setup: FlexureSetup, level: MeshLevel) -> dict:
         "h": level.h,
         "nz": level.nz,
         "contact_h": level.contact_h,
+        "gap_elements": level.gap_elements if setup.mode != "bare" else None,
         "Cf_star": r.Cf_star,
         "wall_s": r.wall_s,
         "n_retained": r.n_retained,
@@ -129,11 +148,34 @@ def converged_compliance(
     return ConvergedCompliance(limit, error, v0, directions, list(runs.values()))
 
 
-def flexure_bench(setup: FlexureSetup, levels: list[MeshLevel], reference: ConvergedCompliance) -> list[dict]:
-    """Time against accuracy: per mesh, C_f*, wall time and the relative error against ``reference``."""
+def companion_ladder(base: MeshLevel = DEFAULT_LEVEL, levels: int = 3) -> list[MeshLevel]:
+    """``base`` and its companions refined ``levels - 1`` times (sec. 9c: layers, elements across each
+    gap and the contact size, all by 2)."""
+    out = [base]
+    for _ in range(levels - 1):
+        out.append(out[-1].refined())
+    return out
+
+
+def flexure_bench(
+    setup: FlexureSetup, levels: list[MeshLevel], reference: ConvergedCompliance | float
+) -> list[dict]:
+    """Time against accuracy: per mesh, C_f*, wall time and the relative error against ``reference``
+    (a converged compliance, or its value)."""
+    limit = reference.Cf_star if isinstance(reference, ConvergedCompliance) else float(reference)
     rows = []
     for lv in levels:
         row = run_level(setup, lv)
-        row["rel_error"] = abs(row["Cf_star"] - reference.Cf_star) / reference.Cf_star
+        row["rel_error"] = abs(row["Cf_star"] - limit) / limit
         rows.append(row)
     return rows
+
+
+def companion_bench(setup: FlexureSetup, base: MeshLevel = DEFAULT_LEVEL) -> tuple[list[dict], tuple]:
+    """Time against accuracy along the companion ladder of ``base`` (three meshes): each row's error
+    against the ladder's Richardson limit, which is returned with its order and error estimate."""
+    rows = [run_level(setup, lv) for lv in companion_ladder(base)]
+    limit, p, err = richardson([r["Cf_star"] for r in rows])
+    for r in rows:
+        r["rel_error"] = abs(r["Cf_star"] - limit) / limit
+    return rows, (limit, p, err)
