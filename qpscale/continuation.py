@@ -99,7 +99,17 @@ class SQPLevels:
     mirror: Mirror | None = None
 
     def __call__(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
-        settings = self.sqp(descent)
+        return self.at(start, delta, index, descent).solve()
+
+    def increment_qp(self, state: Equilibrium) -> tuple[IncrementQP, ContactSet | None]:
+        """The increment QP linearised at a converged ``state`` and its contact set
+        (``PunctureLevel.increment_qp``)."""
+        return self.at(state, state.delta).increment_qp()
+
+    def at(
+        self, start: Equilibrium, delta: float, index: int | None = None, descent: bool = False
+    ) -> PunctureLevel:
+        """The level at depth ``delta`` from ``start`` (its contact rows and planes)."""
         return PunctureLevel(
             self.patch,
             self.K,
@@ -107,29 +117,11 @@ class SQPLevels:
             self.load,
             delta,
             self.contact,
-            settings,
+            self.sqp(descent),
             index,
             start.contacts,
             self.mirror,
-        ).solve()
-
-    def increment_qp(self, state: Equilibrium) -> tuple[IncrementQP, ContactSet | None]:
-        """The increment QP linearised at a converged ``state`` and its contact set
-        (``PunctureLevel.increment_qp``)."""
-        settings, rows = self.sqp(), state.contacts
-        at = PunctureLevel(
-            self.patch,
-            self.K,
-            state.q,
-            self.load,
-            state.delta,
-            self.contact,
-            settings,
-            None,
-            rows,
-            self.mirror,
         )
-        return at.increment_qp()
 
     def sqp(self, descent: bool = False) -> SQPSettings:
         """The SQP settings of a level: the plain iteration for a landing (``descent``), and no
