@@ -27,7 +27,15 @@ from .certify import LP_OPTIONS
 from .errors import SolverFailure
 from .increment import Equilibrium, LoadPoint
 from .qp import IncrementQP
-from .stability import Stability, _hessian, _lifted, _null_space, _row_hessians, rotated_point_derivatives
+from .stability import (
+    Stability,
+    _hessian,
+    _lifted,
+    _null_space,
+    _row_hessians,
+    dof_mode,
+    rotated_point_derivatives,
+)
 from .tiling import Patch
 
 # Rows this far from contact (L) at the state may carry force: a converged state's gaps are its
@@ -230,8 +238,4 @@ def uniform_second_variation(
     Mstar = M0 - np.tensordot(lam, Mi, axes=1) + F * Mw
     vals, vecs = np.linalg.eigh(0.5 * (Mstar + Mstar.T))
     mu = float(vals[0])
-    mode = (Z @ vecs[:, 0])[: 5 * n].reshape(n, 5)
-    big = np.max(np.abs(mode))
-    if big > 0:
-        mode = mode / (big * np.sign(mode.ravel()[np.argmax(np.abs(mode))]))
-    return Stability(mu, mu > -tol, mode, k)
+    return Stability(mu, mu > -tol, dof_mode(Z @ vecs[:, 0], n), k)

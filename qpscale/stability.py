@@ -322,12 +322,18 @@ def _reduced_minimum(
         return Stability(np.inf, True, np.zeros((n, 5)), len(lifted.rows))
     # Only the smallest eigenpair is needed: LAPACK's MRRR driver (evr) stops there.
     w, V = la.eigh(Z.T @ H @ Z, subset_by_index=[0, 0])
-    mode = (Z @ V[:, 0])[: 5 * n].reshape(n, 5)
+    lo = float(w[0]) / scale
+    return Stability(lo, lo > -tol, dof_mode(Z @ V[:, 0], n), len(lifted.rows))
+
+
+def dof_mode(v: Array, n: int) -> Array:
+    """The DOF part ``(n, 5)`` of an eigenvector ``v`` of the reduced Hessian (sec. 5): max-norm
+    one, its largest entry positive."""
+    mode = v[: 5 * n].reshape(n, 5)
     big = np.max(np.abs(mode))
     if big > 0:
         mode = mode / (big * np.sign(mode.ravel()[np.argmax(np.abs(mode))]))
-    lo = float(w[0]) / scale
-    return Stability(lo, lo > -tol, mode, len(lifted.rows))
+    return mode
 
 
 def _lifted(patch: Patch, eq: Equilibrium, load: LoadPoint) -> _Lifted:
