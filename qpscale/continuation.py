@@ -67,6 +67,10 @@ PREDICTOR_ERROR = 1e-3
 HARD_LEVEL = 30
 # The failure state's tilt must lie within this fraction of phi_c (issue #5: F_c at phi_c to 1e-6).
 TILT_LOCATED = 1e-6
+# The failure search stops at a state whose tilt is within this fraction of phi_c: states solved at
+# one depth from different starts differ by ~2e-9 phi_c in tilt (default scene), so a tighter
+# target only re-solves the noise (13 more levels there), and F_c moves by ~1e-9 across it.
+TILT_TARGET = 1e-8
 
 
 class LevelSolver(Protocol):
@@ -431,7 +435,7 @@ class Path:
             d = (a.delta * f_hi - b.delta * f_lo) / (f_hi - f_lo)
             eq = self.solve(a, d, index).unwrap()
             f = self.tilt_of(eq) - self.phi_c
-            if abs(f) <= 1e-12 * self.phi_c:
+            if abs(f) <= TILT_TARGET * self.phi_c:
                 return eq
             if abs(b.delta - a.delta) <= 1e-15 * max(1.0, b.delta):
                 # The bracket is at round-off of the depth: the SQP's accuracy (~1e-8) limits how
@@ -491,7 +495,10 @@ class Path:
 
         A step that releases energy, or ends in a state failing the stability test, is bisected
         (``ceiling``: the depth of the last such step) until the event is located within
-        ``SNAP_RESOLUTION``; the path then leaves its branch (the jump's landing state, or the
+        ``SNAP_RESOLUTION``; a loss of stability is located by regula falsi (Illinois) on the
+        smallest eigenvalue instead, which is smooth along the branch (``_split``), and its
+        ceiling is retested once, when the bracket is below the resolution.  The path then leaves
+        its branch (the jump's landing state, or the
         unstable state pushed along its mode), and a landing past phi_c is the failure (sec. 3-4).
         On a symmetric path (``mirror``) a located instability whose mode breaks the symmetry
         raises :class:`Bifurcation` instead.
@@ -500,10 +507,15 @@ class Path:
         step = step if step is not None else self.first_step(states[0])
         min_step, max_step = step * 1e-4, step * 100
         ceiling, resume, retest = np.inf, step, False
+        # Eigenvalue margins (mu + STABILITY_TOL) of the last state and of the ceiling's state, and
+        # which end of the bracket moved last (Illinois: the other end's value is halved).
+        g_last: float | None = None
+        g_ceiling: float | None = None
+        moved = 0
         while len(states) <= self.settings.max_increments:
             last = states[-1]
             if ceiling < np.inf:
-                step = ceiling - last.delta if retest else 0.5 * (ceiling - last.delta)
+                step = ceiling - last.delta if retest else _split(ceiling - last.delta, g_last, g_ceiling)
             guess = predict(states, last.delta + step)
             outcome = self.solve(guess, last.delta + step, len(states))
             if outcome.state is None:
@@ -536,8 +548,12 @@ class Path:
             if unstable or (self.settings.conservative and not landed and self.snapped(last, eq)):
                 if step > SNAP_RESOLUTION * eq.delta:
                     if ceiling == np.inf:
-                        resume = step
+                        resume, moved = step, 0
                     ceiling, retest = eq.delta, False
+                    g_ceiling = sv.min_eigenvalue + STABILITY_TOL if unstable and sv is not None else None
+                    if moved == 1 and g_last is not None:
+                        g_last /= 2
+                    moved = 1
                     continue
                 if unstable:
                     assert sv is not None
@@ -566,10 +582,14 @@ class Path:
                         return states
                     eq, ceiling, step, self.smooth_from = landing, np.inf, resume, len(states)
             elif ceiling < np.inf:
-                # Below the ceiling the path is continuous; retest the rest of the bracket.
+                # Below the ceiling the path is continuous.  Retest the rest of a snap's bracket (the
+                # ceiling's state came from a farther start); an instability's once it is resolved.
                 if eq.delta >= ceiling:
                     ceiling, step = np.inf, resume
-                retest = True
+                retest = g_ceiling is None or ceiling - eq.delta <= SNAP_RESOLUTION * eq.delta
+                if moved == -1 and g_ceiling is not None:
+                    g_ceiling /= 2
+                moved = -1
             if self.tilt_of(eq) >= self.phi_c:
                 final = self.locate_failure(last, eq, len(states))
                 self.events.append(Failure("tilt", final.delta, self.settings.phi_c_deg))
@@ -577,6 +597,7 @@ class Path:
                 return states
             self._record_contact_change(last, eq)
             states.append(eq)
+            g_last = sv.min_eigenvalue + STABILITY_TOL if sv is not None else None
             if ceiling == np.inf:
                 cap = _curvature_cap(states[self.smooth_from :])
                 predicted = not landed and eq is outcome.state and guess is not last
@@ -670,6 +691,15 @@ def predict(states: list[Equilibrium], delta: float) -> Equilibrium:
         iterations=0,
         penetration=last.penetration,
     )
+
+
+def _split(width: float, g_lo: float | None, g_hi: float | None) -> float:
+    """Step into a bracket of ``width`` above the last state: where the straight line through the
+    eigenvalue margins ``g_lo > 0`` (last state) and ``g_hi < 0`` (the ceiling's) crosses zero, kept
+    1 % inside the bracket; half the bracket when a margin is unknown (a snap's bracket)."""
+    if g_lo is None or g_hi is None or not g_lo > 0.0 > g_hi:
+        return 0.5 * width
+    return float(np.clip(g_lo / (g_lo - g_hi), 0.01, 0.99)) * width
 
 
 def _work(a: Equilibrium, b: Equilibrium) -> float:
