@@ -286,6 +286,18 @@ def backend_options(solver: str, tol: float) -> dict[str, Any]:
         # with |objective| and let max z_i s_i reach 2e-9 at tol_gap_rel=1e-10, so it is switched off.
         # Its feasibility residuals are relative to max(1, |q|, |b|...): absolute for our O(1) data.
         return {"tol_gap_abs": t, "tol_gap_rel": 0.0, "tol_feas": t, "max_iter": 200}
+    if solver == "piqp":
+        # Iterative refinement on every factorisation: without it one held-symmetric QP of the
+        # default scene (face contacts, planes held mirror-symmetric) stopped at PIQP's iteration
+        # limit with the dual residual at 10 (formulations table 1).
+        return {
+            "eps_abs": t,
+            "eps_rel": 0.0,
+            "eps_duality_gap_abs": t,
+            "eps_duality_gap_rel": 0.0,
+            "iterative_refinement_always_enabled": True,
+            "max_iter": 200,
+        }
     if solver == "osqp":
         # ADMM with polishing: the polished active-set solve is exact when it succeeds; eps_rel = 0 so the
         # unpolished fallback stops on absolute residuals; ADMM may need many iterations at 1e-9.

@@ -27,6 +27,7 @@ from qpscale.solvers.timing import ROUTES, synthetic_qp, time_qp
 # KKT matrices here have condition numbers of O(10), so x, z, y are checked to 100 * tol.
 REACHES = {
     "clarabel": "high",  # interior point, stops 10x below tol
+    "piqp": "high",  # proximal interior point
     "osqp": "high",  # polished active-set solve is exact
     "cvxpy": "high",  # Clarabel underneath
     "qpsolvers:clarabel": "high",
@@ -54,7 +55,7 @@ def _err(r, k) -> float:
 
 def test_registry_lists_direct_and_every_qpsolvers_backend():
     names = available_solvers()
-    assert names[:3] == ["clarabel", "osqp", "cvxpy"]
+    assert names[:4] == ["clarabel", "piqp", "osqp", "cvxpy"]
     assert {f"qpsolvers:{n}" for n in qpsolvers.available_solvers} <= set(names)
     with pytest.raises(SolverUnavailable, match="clarabel"):
         solve_qp(synthetic_qp(0, n_blocks=1, m=2, coupling=0).qp, solver="gurobi")
@@ -121,7 +122,9 @@ def _infeasible() -> IncrementQP:
     )
 
 
-@pytest.mark.parametrize("solver", ["clarabel", "osqp", "cvxpy", "qpsolvers:proxqp", "qpsolvers:daqp"])
+@pytest.mark.parametrize(
+    "solver", ["clarabel", "piqp", "osqp", "cvxpy", "qpsolvers:proxqp", "qpsolvers:daqp"]
+)
 def test_infeasible_is_a_status_not_a_number(solver):
     if solver not in available_solvers():
         pytest.skip(f"{solver} not installed")
@@ -130,7 +133,7 @@ def test_infeasible_is_a_status_not_a_number(solver):
     with pytest.raises(SolverFailure) as info:
         solve_qp(_infeasible(), solver)
     assert info.value.solver == solver and info.value.status == r.status
-    if solver in ("clarabel", "osqp", "cvxpy"):  # these report their own infeasibility word
+    if solver in ("clarabel", "piqp", "osqp", "cvxpy"):  # these report their own infeasibility word
         assert "infeasible" in r.status.lower()
 
 
@@ -244,9 +247,14 @@ def test_a_far_miss_is_retried_only_where_a_robust_setting_exists(monkeypatch):
 def _dart_hinge_qp() -> IncrementQP:
     """The QP of one increment of the 5x5 dart (alpha0 = 60 deg, plane damping) on which Clarabel's
     default settings stall: dependent active rows of a pressed plane on a hinge."""
+    return _stored_qp("dart_hinge_qp.npz")
+
+
+def _stored_qp(file: str) -> IncrementQP:
+    """An increment QP captured from a run, stored as its CSC arrays in tests/data."""
     from pathlib import Path
 
-    d = np.load(Path(__file__).parent / "data" / "dart_hinge_qp.npz")
+    d = np.load(Path(__file__).parent / "data" / file)
 
     def csc(name):
         return sp.csc_matrix(
@@ -269,6 +277,31 @@ def test_degenerate_hinge_qp_is_solved_by_the_retry():
     # (a hinge is free but for its small weight) are ill-conditioned and are not compared.
     ref = solve_qp(qp, "qpsolvers:quadprog", "high")
     assert np.max(np.abs(r.x[:125] - ref.x[:125])) <= 1e-9
+
+
+def test_piqp_solves_the_hinge_qp_without_a_retry():
+    # The proximal terms regularise the dependent active rows Clarabel's default stalls on; the
+    # scales' DOFs agree with quadprog's active-set solution as Clarabel's retry does (1e-9).
+    qp = _dart_hinge_qp()
+    r = solve_qp(qp, "piqp", "high")
+    assert not r.extras.get("retried") and max(r.residuals.values()) <= 1e-9
+    ref = solve_qp(qp, "qpsolvers:quadprog", "high")
+    assert np.max(np.abs(r.x[:125] - ref.x[:125])) <= 1e-9
+
+
+def test_piqp_needs_its_iterative_refinement_on_held_symmetric_qps():
+    # One QP of the default scene's held-symmetric path (25 scales, 72 planes, 173 equality rows):
+    # without refinement PIQP stops at its iteration limit, with the table's settings it solves,
+    # and its scales' DOFs are DAQP's exact active-set solution to 1e-8 (formulations 3.2a).
+    from qpscale.qp import accept, backend_options
+
+    qp = _stored_qp("held_square_qp.npz")
+    bare = {**backend_options("piqp", 1e-9), "iterative_refinement_always_enabled": False}
+    assert not accept(solvers._REGISTRY["piqp"](qp, bare, None), 1e-9).found
+    r = solve_qp(qp, "piqp", "high")
+    assert not r.extras.get("retried") and max(r.residuals.values()) <= 1e-9
+    ref = solve_qp(qp, "qpsolvers:daqp", 1e-11)
+    assert np.max(np.abs(r.x[:125] - ref.x[:125])) <= 1e-8
 
 
 def test_retry_keeps_the_benchmarks_per_method_settings(monkeypatch):

@@ -2,7 +2,7 @@
 
 Backends are imported when first used: a missing optional package removes its keys from the
 registry instead of breaking ``import qpscale``, and a run imports only the backend it calls.
-Keys: ``"clarabel"``, ``"osqp"``, ``"cvxpy"`` and
+Keys: ``"clarabel"``, ``"piqp"``, ``"osqp"``, ``"cvxpy"`` and
 ``"qpsolvers:<name>"`` for every solver qpsolvers reports installed.
 """
 
@@ -60,7 +60,7 @@ class _Registry(MutableMapping[str, Backend]):
     Assigning a key (tests inject faulty backends that way) overrides it.
     """
 
-    DIRECT = ("clarabel", "osqp", "cvxpy")
+    DIRECT = ("clarabel", "piqp", "osqp", "cvxpy")
 
     def __init__(self) -> None:
         self._loaded: dict[str, Backend] = {}
