@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 from . import validation as v
 from .errors import InvalidDesign, OutputNotWritten
+from .solvers import DEFAULT_SOLVER
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -371,7 +372,7 @@ def puncture(
     isolated: bool = False,
     interaction: str = "full",
     coupling_factor: float | None = None,
-    solver: str = "clarabel",
+    solver: str = DEFAULT_SOLVER,
     formulation: str = "plane",
     accuracy: str | float | None = None,
     phi_c_deg: float = 13.0,
@@ -656,7 +657,7 @@ def flexure(
     bare: bool = False,
     nu_m: float = 0.5,
     mesh_h: float = 0.5,
-    solver: str = "clarabel",
+    solver: str = DEFAULT_SOLVER,
     formulation: str = "plane",
     roller_radius: float = 0.5,
     top_h: float | None = None,

@@ -30,6 +30,7 @@ from typer.core import TyperGroup
 
 from . import __version__
 from .errors import InvalidDesign, OutputNotWritten, QpscaleError, SolverFailure, SolverUnavailable
+from .solvers import DEFAULT_SOLVER
 from .validation import FLAG_OF, Conflict
 
 # soft_wrap: a summary piped to a file or another program is one line per result, never cut in the
@@ -433,7 +434,7 @@ def puncture(
             "--coupling-factor", "Substrate coupling f for substrate/contact (default 1; contact 0.04)."
         ),
     ),
-    solver: str = typer.Option("clarabel", "--solver", help=_help("--solver", "QP backend.")),
+    solver: str = typer.Option(DEFAULT_SOLVER, "--solver", help=_help("--solver", "QP backend.")),
     formulation: str = typer.Option(
         "plane",
         "--formulation",
@@ -536,7 +537,9 @@ def flexure(
     mesh_h: float = typer.Option(
         0.5, "--mesh-h", help=_help("--mesh-h", "In-plane element size (layers: max(2, 1.5/h)).")
     ),
-    solver: str = typer.Option("clarabel", "--solver", help=_help("--solver", "QP backend (not penalty).")),
+    solver: str = typer.Option(
+        DEFAULT_SOLVER, "--solver", help=_help("--solver", "QP backend (not penalty).")
+    ),
     formulation: str = typer.Option(
         "plane",
         "--formulation",

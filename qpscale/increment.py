@@ -23,6 +23,7 @@ from .geometry import rotation_matrix, tangent_operator
 from .level import LevelOutcome
 from .level import LevelStatus as LevelStatus  # re-exported: a level's outcome is read with it
 from .qp import IncrementQP, resolve_tolerance
+from .solvers import DEFAULT_SOLVER
 from .tiling import Patch
 
 NDOF = 5
@@ -104,7 +105,7 @@ class SQPSettings:
         one setting again with the other (puncture.md sec. 2).
     """
 
-    solver: str = "clarabel"
+    solver: str = DEFAULT_SOLVER
     accuracy: str | float = "high"
     step_tol: float = 0.0
     penetration_tol: float = 0.0

@@ -28,6 +28,7 @@ from ..increment import PLANE_PROX, PlaneDamping, _pinned_only
 from ..level import LevelControls, LevelOutcome, LevelStatus, Progress, Step, qp_step
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
+from ..solvers import DEFAULT_SOLVER
 from ..tiling import Design, Patch, build_patch
 from ..units import compliance_star
 
@@ -111,7 +112,7 @@ class FlexureSetup:
     formulation: str = "plane"
     grade: bool = True
     gap_elements: int | None = 2
-    solver: str = "clarabel"
+    solver: str = DEFAULT_SOLVER
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

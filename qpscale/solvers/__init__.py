@@ -14,17 +14,19 @@ import logging
 import sys
 from collections.abc import Callable, Iterator, MutableMapping
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import SolverFailure, SolverUnavailable
-from ..qp import IncrementQP, IncrementResult, accept, backend_options, resolve_tolerance, retry_options
+
+if TYPE_CHECKING:  # the QP record imports scipy.sparse: not needed to read DEFAULT_SOLVER (the CLI)
+    from ..qp import IncrementQP, IncrementResult
 
 logger = logging.getLogger(__name__)
 
 #: Default backend: the fastest one that meets "high" accuracy on our problems (see the benchmark).
 DEFAULT_SOLVER = "clarabel"
 
-Backend = Callable[[IncrementQP, dict, Any], IncrementResult]
+Backend = Callable[["IncrementQP", dict, Any], "IncrementResult"]
 
 #: A rejected answer is solved once more (formulations/increment-qp.md sec. 5): after a near miss
 #: (residuals within NEAR_MISS x tolerance) any backend, aiming RETRY_TIGHTEN x lower; after any
@@ -187,6 +189,8 @@ def solve_qp(
         With ``check=True``: the backend's status was not a success, or a residual exceeded the
         tolerance (the residuals are in ``detail``).
     """
+    from ..qp import accept, backend_options, resolve_tolerance, retry_options
+
     if solver not in _REGISTRY:
         raise SolverUnavailable(f"solver {solver!r} is not available; choose one of {available_solvers()}")
     tol = resolve_tolerance(accuracy)

@@ -205,14 +205,14 @@ def backend_overrides(options: dict | None) -> Iterator[None]:
     if not options:
         yield
         return
-    from .. import solvers
+    from .. import qp
 
-    original = solvers.backend_options
-    solvers.backend_options = lambda solver, tol: {**original(solver, tol), **options}
+    original = qp.backend_options
+    qp.backend_options = lambda solver, tol: {**original(solver, tol), **options}
     try:
         yield
     finally:
-        solvers.backend_options = original
+        qp.backend_options = original
 
 
 def _setup(scene: Scene, method: Method, load_point: tuple[float, float] | None) -> PunctureSetup:

@@ -40,6 +40,7 @@ from typing import Any
 
 from .. import validation as v
 from ..errors import InvalidDesign
+from ..solvers import DEFAULT_SOLVER
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -155,7 +156,7 @@ def defaults(experiment: str) -> dict[str, Any]:
             rings=DEFAULT_RINGS,
             interaction="full",
             coupling_factor=None,
-            solver="clarabel",
+            solver=DEFAULT_SOLVER,
             formulation="plane",
             accuracy="high",
             phi_c_deg=13.0,
@@ -168,7 +169,7 @@ def defaults(experiment: str) -> dict[str, Any]:
             mode="scaled",
             mesh_h=0.5,
             nu_m=0.5,
-            solver="clarabel",
+            solver=DEFAULT_SOLVER,
             formulation="plane",
             roller_radius=0.5,
         )
