@@ -49,6 +49,7 @@ NOISE = 100.0
 # The forces of the set's members are bounded by BOX times the force scale (a self-stress is a
 # ray of the set); the cutting planes stop at MAX_CUTS or when their bounds are GAP apart.
 BOX = 10.0
+SUPPORT_LP_OPTIONS = {"primal_feasibility_tolerance": 1e-9, "dual_feasibility_tolerance": 1e-9}
 MAX_CUTS = 200
 GAP = 1e-10
 
@@ -74,15 +75,22 @@ class MultiplierSet:
 
 def _support_lp(w0: np.ndarray, ker: np.ndarray, k: int, rows: np.ndarray, cap: float, bound: float):
     """``max sum_{i in rows} min(lam_i, cap)`` over ``lam = (w0 + ker u)[:k] >= 0``, ``lam <= bound``:
-    unknowns (u, t); returns the member ``w0 + ker u`` or None."""
+    unknowns (u, t); returns the member ``w0 + ker u`` or None.
+
+    Solved in units of the force scale (``bound / BOX``) with feasibility tolerances of 1e-9:
+    HiGHS's tolerances are absolute, and in force units (caps of ~2e-3, 103 kernel directions,
+    the 5x5 dart with contact interaction only) it stopped with an unknown status on an LP that
+    ``u = 0`` satisfies."""
+    unit = bound / BOX
     nu, m = ker.shape[1], len(rows)
     K_lam = ker[:k]
     c = np.r_[np.zeros(nu), -np.ones(m)]
     pick = np.hstack([-ker[rows], np.eye(m)])  # t_i - (ker u)_i <= w0_i
     A_ub = np.vstack([np.hstack([-K_lam, np.zeros((k, m))]), np.hstack([K_lam, np.zeros((k, m))]), pick])
-    b_ub = np.r_[w0[:k], bound - w0[:k], w0[rows]]
-    res = linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * nu + [(0.0, cap)] * m, method="highs")
-    return w0 + ker @ res.x[:nu] if res.status == 0 else None
+    b_ub = np.r_[w0[:k], bound - w0[:k], w0[rows]] / unit
+    bounds = [(None, None)] * nu + [(0.0, cap / unit)] * m
+    res = linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs", options=SUPPORT_LP_OPTIONS)
+    return w0 + unit * (ker @ res.x[:nu]) if res.status == 0 else None
 
 
 def multiplier_set(qp: IncrementQP, force_scale: float) -> MultiplierSet:
