@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from qpscale.contact import ContactSettings
+from qpscale.continuation import TILT_TARGET
 from qpscale.errors import InvalidDesign, SolverFailure
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
 from qpscale.increment import SQPSettings
@@ -73,11 +74,12 @@ def test_isolated_scale_equals_qp():
     pen = run_puncture(_setup(0, solver="penalty"))
     assert pen.max_penetration == 0.0
     # The paths may differ in their steps (the QP path's energy-balance test bisects where the
-    # trapezoidal error is large; the penalty path has no such test): F_c is located at phi_c.
-    assert pen.tilt_deg[-1] == pytest.approx(13.0, rel=1e-9) and qp.tilt_deg[-1] == pytest.approx(
-        13.0, rel=1e-9
-    )
-    assert abs(pen.Fc_star - qp.Fc_star) <= 1e-9 * qp.Fc_star
+    # trapezoidal error is large; the penalty path has no such test): F_c is located at phi_c to
+    # the failure search's target (TILT_TARGET phi_c, puncture.md sec. 3), and F of the isolated
+    # scale grows about in proportion to the tilt there, so the two F_c agree to twice that.
+    for r in (pen, qp):
+        assert r.tilt_deg[-1] == pytest.approx(13.0, rel=TILT_TARGET)
+    assert abs(pen.Fc_star - qp.Fc_star) <= 2 * TILT_TARGET * qp.Fc_star
 
 
 def test_level_force_converges_at_rate_one_over_k():
