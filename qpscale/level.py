@@ -341,7 +341,8 @@ def _accelerated(
     new = cs.plane_memory
     f_pl = np.zeros_like(x_pl)
     if new:
-        f_pl = np.array([np.r_[new[k][0], new[k][1]] for k in keys]).ravel() - x_pl
+        moved = [new[k] for k in keys]
+        f_pl = np.hstack([[m[0] for m in moved], [m[1] for m in moved]]).ravel() - x_pl
     z = accel.step(np.r_[q.reshape(-1), x_pl], np.r_[dq.reshape(-1), f_pl])
     planes = z[q.size :].reshape(-1, 6)
     normals = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
