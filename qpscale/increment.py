@@ -98,8 +98,8 @@ class SQPSettings:
         Depth of the Anderson acceleration (sec. 4, Acceleration); 0 is the plain fixed-point iteration, a
         descent of the energy in the K metric (the landing of a snap, puncture.md sec. 4).
     plane_damping : bool
-        Weight each pressed separating plane's rotation by the force it carries and let planes
-        with violated rows move (``PlaneDamping``, sec. 4b): cures the hinge 2-cycle of nearly
+        Weight each pressed separating plane's rotation by the force it carries
+        (``PlaneDamping``, sec. 4b; planes with violated rows move either way): cures the hinge 2-cycle of nearly
         parallel edges, but creeps where a plane has far to travel.  Converged states are the
         same either way; off by default, and the puncture path solves a level that fails with
         one setting again with the other (puncture.md sec. 2).
@@ -420,7 +420,7 @@ class _SequentialQP:
         x, lam = np.asarray(res.x), np.asarray(res.z)
         theta = x[q.size :]
         if cs is not None and cs.planes is not None and len(theta):
-            theta = _pinned_only(theta, cs, lam, violated=s.plane_damping, mirror=at.mirror)
+            theta = _pinned_only(theta, cs, lam, violated=True, mirror=at.mirror)
             cs = replace(cs, plane_memory=cs.planes.advanced(theta))
             if s.plane_damping:
                 self.damping.update(cs, theta, lam)

@@ -30,6 +30,9 @@ from qpscale.membrane import MembraneModel
 from qpscale.qp import candidate_result
 
 SMALL = Design(rings=1)
+# The faults are injected into Clarabel (its statuses, its settings' names, its retry after any
+# rejection), so every level and path here asks for it, whatever the default backend.
+CLARABEL = SQPSettings(solver="clarabel")
 EDGE = (1.0, 0.0)  # mid-edge of the 3x3 square's centre scale: a continuous path to a fold
 DEPTH = 0.3  # the loaded scale presses on its neighbour there (planes in contact)
 
@@ -83,10 +86,10 @@ class Faults:
 @pytest.fixture(scope="module")
 def level():
     """The mid-edge level of the 3x3 square, solved without faults: (arguments, state)."""
-    setup = PunctureSetup(design=SMALL, load_point=EDGE, probe=False)
+    setup = PunctureSetup(design=SMALL, load_point=EDGE, probe=False, sqp=CLARABEL)
     patch, K = build_model(setup)
     args = (patch, K, np.zeros((patch.n_scales, 5)), _load_point(patch, EDGE), DEPTH, setup.contact)
-    clean = PunctureLevel(*args, SQPSettings()).solve()
+    clean = PunctureLevel(*args, CLARABEL).solve()
     assert clean.converged and not clean.rescues and clean.state.contacts.planes.count > 0
     return args, clean.state
 
@@ -116,7 +119,7 @@ def test_a_level_that_fails_reports_the_backends_status_and_no_state(level, monk
     args, _ = level
     faults = Faults(every=True)
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
-    out = PunctureLevel(*args, SQPSettings(), increment=7).solve()
+    out = PunctureLevel(*args, CLARABEL, increment=7).solve()
     assert out.status is LevelStatus.QP_FAILED and out.state is None
     assert out.failure.status == "injected fault" and out.failure.increment == 7
     # Both plane updates were tried, each QP once more by qp_retry (Clarabel after any rejection).
@@ -128,14 +131,15 @@ def test_a_level_that_fails_reports_the_backends_status_and_no_state(level, monk
 
 def test_a_path_whose_levels_fail_exits_3_with_the_status(monkeypatch):
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(every=True))
-    out = CliRunner().invoke(app, ["puncture", "--rings", "1", "--no-probe", "--load-point", "1", "0"])
+    args = ["puncture", "--rings", "1", "--no-probe", "--load-point", "1", "0", "--solver", "clarabel"]
+    out = CliRunner().invoke(app, args)
     assert out.exit_code == 3 and "injected fault" in out.output
 
 
 def test_qp_retry_fires_on_a_near_miss_and_keeps_the_state(level, monkeypatch):
     args, clean = level
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(short={2}))
-    out = PunctureLevel(*args, SQPSettings()).solve()
+    out = PunctureLevel(*args, CLARABEL).solve()
     assert out.converged and [r.rescue for r in out.rescues] == ["qp_retry"]
     assert "AlmostSolved" in out.rescues[0].detail
     _same_state(out.state, clean)
@@ -145,7 +149,7 @@ def test_other_plane_update_fires_when_the_first_attempt_fails_and_keeps_the_sta
     args, clean = level
     faults = Faults(fail={2})  # the first attempt's second QP fails, and so does its retry
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
-    out = PunctureLevel(*args, SQPSettings()).solve()
+    out = PunctureLevel(*args, CLARABEL).solve()
     assert out.converged
     assert [r.rescue for r in out.rescues] == ["qp_retry", "other_plane_update"]
     assert out.rescues[-1].detail == "damped"
@@ -159,7 +163,7 @@ def test_stall_tighten_fires_when_the_steps_stall_on_solver_noise_and_keeps_the_
     # here), and it converges to the state the ordinary level reaches.
     args, clean = level
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(noise=5e-10))
-    out = PunctureLevel(*args, SQPSettings(step_tol=1e-10)).solve()
+    out = PunctureLevel(*args, replace(CLARABEL, step_tol=1e-10)).solve()
     assert "stall_tighten" in [r.rescue for r in out.rescues]
     assert out.converged and out.state.tightened
     _same_state(out.state, clean)
@@ -169,7 +173,9 @@ def test_stall_tighten_fires_when_the_steps_stall_on_solver_noise_and_keeps_the_
 def plate():
     """The one-scale membrane (coarse) at the full plate travel, solved without faults: the model,
     the plate position and its state."""
-    setup = flexure.FlexureSetup(mode="isolated", membrane=MembraneModel(h=1.0, nz=2), increments=1)
+    setup = flexure.FlexureSetup(
+        mode="isolated", membrane=MembraneModel(h=1.0, nz=2), increments=1, solver="clarabel"
+    )
     model = flexure.build_model(setup)
     clean = flexure.solve_position(model, np.zeros(len(model.cond.retained)), setup.max_deflection, 1, None)
     assert clean.converged and not clean.rescues
@@ -201,7 +207,7 @@ def test_a_flexure_position_that_fails_reports_the_status_and_the_curve_stops_wi
     # The curve cannot go on: only there the failure is raised, and the command line exits 3.
     with pytest.raises(SolverFailure, match="injected fault"):
         flexure.run_model(model)
-    cli = CliRunner().invoke(app, ["flexure", "--bare", "--mesh-h", "1"])
+    cli = CliRunner().invoke(app, ["flexure", "--bare", "--mesh-h", "1", "--solver", "clarabel"])
     assert cli.exit_code == 3 and "injected fault" in cli.output
 
 
@@ -222,7 +228,9 @@ def test_flexure_stall_tighten_fires_on_solver_noise_and_keeps_the_state(plate):
 
 
 def test_a_flexure_curve_records_the_rescues_of_its_positions(monkeypatch):
-    setup = flexure.FlexureSetup(mode="isolated", membrane=MembraneModel(h=1.0, nz=2), increments=1)
+    setup = flexure.FlexureSetup(
+        mode="isolated", membrane=MembraneModel(h=1.0, nz=2), increments=1, solver="clarabel"
+    )
     clean = flexure.run_flexure(setup)
     assert clean.extras["rescues"] == []
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(short={2}))
@@ -235,7 +243,7 @@ def test_a_flexure_curve_records_the_rescues_of_its_positions(monkeypatch):
 def alone():
     """The isolated scale loaded at its corner (the path rescues act above the level, so no
     contact is needed), and its unperturbed path."""
-    setup = PunctureSetup(design=Design(rings=0), load_point=(1.0, 1.0), probe=False)
+    setup = PunctureSetup(design=Design(rings=0), load_point=(1.0, 1.0), probe=False, sqp=CLARABEL)
     return setup, run_puncture(setup)
 
 

@@ -12,6 +12,7 @@ from qpscale.contact.symmetry import Mirror
 from qpscale.continuation import STABILITY_TOL, Bifurcation
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, puncture_path, run_puncture
 from qpscale.experiments.symmetry import mirror_through
+from qpscale.increment import SQPSettings
 from qpscale.multipliers import multiplier_set, uniform_second_variation
 from qpscale.stability import second_variation
 from qpscale.tiling import Design
@@ -21,8 +22,10 @@ CORNER = (0.5, 0.5)
 
 @pytest.fixture(scope="module")
 def held_branch():
-    """The corner-loaded 3x3 square held on its symmetric branch up to the branch point."""
-    setup = PunctureSetup(design=Design(rings=1), load_point=CORNER)
+    """The corner-loaded 3x3 square held on its symmetric branch up to the branch point, solved by
+    Clarabel: its state at delta ~ 0.047 is the measured case below (DAQP's vertex multipliers of
+    a state depend on the QP's last digits; on PIQP's path the same effect shows at 0.064)."""
+    setup = PunctureSetup(design=Design(rings=1), load_point=CORNER, sqp=SQPSettings(solver="clarabel"))
     patch, K = build_model(setup)
     load = _load_point(patch, np.array(CORNER))
     M, perm = mirror_through(patch, np.array(CORNER))
@@ -67,16 +70,20 @@ def test_the_set_is_read_from_the_state_alone(held_branch):
     assert np.abs(a.B @ a.kernel).max(initial=0.0) <= 1e-12
 
 
-@pytest.mark.parametrize("solver", ["qpsolvers:daqp", "qpsolvers:piqp"])
-def test_every_backend_finds_the_same_branch_point(solver):
+@pytest.mark.parametrize("solver, branch_tol", [("qpsolvers:daqp", 1e-6), ("clarabel", 1e-4)])
+def test_every_backend_finds_the_same_branch_point(solver, branch_tol):
     # Before the rule DAQP's vertex multipliers put the corner-loaded 3x3 square's branch point at
     # delta = 0.039 (Clarabel's at 0.0845) and its F_c* 3.3e-3 lower.  With the verdict over the
-    # multiplier set, the branch point and F_c* agree with Clarabel's to the path's accuracy
-    # (F_c to 1e-6, puncture.md sec. 3; the branch point is bisected to 1e-7 in delta).
-    pytest.importorskip(solver.split(":")[1])
+    # multiplier set, the branch point and F_c* agree with the default backend's (PIQP) to the
+    # path's accuracy: F_c to 1e-6 (puncture.md sec. 3), the branch point to 1e-6 for DAQP (it
+    # is located to 1e-7 delta).  Clarabel's is 6.7e-5 later (measured): its accepted answers
+    # leave the weakly weighted plane unknowns off by up to ~1e-4 (increment-qp.md sec. 3.2a),
+    # a plane with a violated row keeps that step, and the eigenvalue, which crosses the
+    # threshold at a slope of ~3e-3 per L, moves by ~2e-7 with it.
+    pytest.importorskip(solver.split(":")[-1])
     setup = PunctureSetup(design=Design(rings=1), load_point=CORNER)
     ref = run_puncture(setup)
     other = run_puncture(replace(setup, sqp=replace(setup.sqp, solver=solver)))
     assert ref.branch.branched and other.branch.branched
-    assert other.branch.delta_branch[0] == pytest.approx(ref.branch.delta_branch[0], abs=1e-6)
+    assert other.branch.delta_branch[0] == pytest.approx(ref.branch.delta_branch[0], abs=branch_tol)
     assert other.Fc_star == pytest.approx(ref.Fc_star, rel=1e-6)

@@ -23,8 +23,10 @@ if TYPE_CHECKING:  # the QP record imports scipy.sparse: not needed to read DEFA
 
 logger = logging.getLogger(__name__)
 
-#: Default backend: the fastest one that meets "high" accuracy on our problems (see the benchmark).
-DEFAULT_SOLVER = "clarabel"
+#: Default backend: the fastest one that meets "high" accuracy on our problems (see the benchmark):
+#: PIQP, 2.4x faster per QP than Clarabel on the default scene and exact to 1e-8 against DAQP's
+#: active-set solutions where Clarabel's accepted points differ by up to 2e-6 (formulations 3.2a).
+DEFAULT_SOLVER = "piqp"
 
 Backend = Callable[["IncrementQP", dict, Any], "IncrementResult"]
 

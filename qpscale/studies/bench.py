@@ -24,7 +24,7 @@ from ..experiments.puncture import PunctureSetup, run_puncture
 from ..increment import SQPSettings
 from ..penalty import PenaltySettings
 from ..qp import resolve_tolerance
-from ..solvers import available_solvers, is_available
+from ..solvers import DEFAULT_SOLVER, available_solvers, is_available
 from ..tiling import Design
 from ..timelimit import TimeLimitReached
 from ..timelimit import time_limit as wall_limit
@@ -117,7 +117,7 @@ class Run:
 
 @dataclass
 class Reference:
-    """The tightest converged QP solution of a scene (clarabel, high accuracy)."""
+    """The tightest converged QP solution of a scene (the default backend, high accuracy)."""
 
     scene: str
     Fc_star: float
@@ -158,8 +158,8 @@ def default_methods(quick: bool = True) -> list[Method]:
     have = set(available_solvers())
     # OSQP at 1e-9 took over 40 s on one 5x5 square curve (measured, ADMM at eps 1e-10), OSQP at 1e-6
     # 33 s and the penalty path 27 s: the quick bench (2-minute budget) keeps the direct Clarabel
-    # path, the same solver through qpsolvers and CVXPY (wrapper overhead) and PIQP; the rest is full.
-    out = [Method("clarabel", "clarabel"), Method("cvxpy", "cvxpy")]
+    # and PIQP paths, the same solvers through qpsolvers and CVXPY (wrapper overhead); the rest is full.
+    out = [Method("clarabel", "clarabel"), Method("piqp", "piqp"), Method("cvxpy", "cvxpy")]
     extra = _qpsolvers_wanted(quick)
     out += [Method(f"qpsolvers:{n}", f"qpsolvers:{n}") for n in extra if f"qpsolvers:{n}" in have]
     if not quick:
@@ -233,14 +233,14 @@ def _setup(scene: Scene, method: Method, load_point: tuple[float, float] | None)
 
 
 def reference_run(scene: Scene, limit_s: float | None = None) -> Reference:
-    """Clarabel at high accuracy over every symmetry-distinct vertex (or at the scene's own
+    """The default backend at high accuracy over every symmetry-distinct vertex (or at the scene's own
     ``load_point``): F_c and the load point it belongs to.
 
     Raises :class:`TimeLimitReached` after ``limit_s`` seconds (None: no limit).
     """
     t0 = time.perf_counter()
     with wall_limit(limit_s):
-        res = run_puncture(_setup(scene, Method("reference", "clarabel"), scene.load_point))
+        res = run_puncture(_setup(scene, Method("reference", DEFAULT_SOLVER), scene.load_point))
     xy = tuple(float(v) for v in res.load_point)
     return Reference(scene.name, float(res.Fc_star), xy, time.perf_counter() - t0)  # type: ignore[arg-type]
 
