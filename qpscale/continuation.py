@@ -500,6 +500,12 @@ class Path:
         step = step if step is not None else self.first_step(states[0])
         min_step, max_step = step * 1e-4, step * 100
         ceiling, resume, retest = np.inf, step, False
+        # Ceilings of open brackets of another kind below which an event was found (a snap's
+        # bracket holding a loss of stability or a failing level): once the path passes the inner
+        # bracket it goes back to the outer one with a retest, instead of the full step that
+        # opened it (which only found the same snap again and bisected it from the start).
+        pending: list[float] = []
+        kind = ""
         while len(states) <= self.settings.max_increments:
             last = states[-1]
             if ceiling < np.inf:
@@ -513,7 +519,9 @@ class Path:
                         Rescue("halve_step", last.delta + step, len(states), outcome.failure.status)
                     )
                     if ceiling < np.inf:
-                        ceiling, retest = last.delta + step, False
+                        if kind != "failed":
+                            pending.append(ceiling)
+                        ceiling, retest, kind = last.delta + step, False, "failed"
                     else:
                         step /= 2
                     continue
@@ -526,18 +534,23 @@ class Path:
                     if self.left_branch(last, eq):
                         return states
                     self.smooth_from = len(states)
-                ceiling, step, landed = np.inf, resume, True
+                    pending.clear()
+                ceiling, retest, landed = _next_ceiling(pending, eq.delta), True, True
+                if ceiling == np.inf:
+                    step = resume
             else:
                 eq, landed = outcome.state, False
+            doubted = False
             sv = self.stability(eq) if self.settings.check and not landed else None
             unstable = sv is not None and not sv.stable and not self.unconfirmed
-            if sv is not None and sv.stable:
-                self.unconfirmed = False
             if unstable or (self.settings.conservative and not landed and self.snapped(last, eq)):
                 if step > SNAP_RESOLUTION * eq.delta:
+                    now = "unstable" if unstable else "snap"
                     if ceiling == np.inf:
                         resume = step
-                    ceiling, retest = eq.delta, False
+                    elif kind != now:
+                        pending.append(ceiling)
+                    ceiling, retest, kind = eq.delta, False, now
                     continue
                 if unstable:
                     assert sv is not None
@@ -550,6 +563,7 @@ class Path:
                     # The plain iteration follows the path where the extrapolated one leapt into
                     # another basin: no jump, an ordinary step.
                     eq, ceiling, step = landing, np.inf, resume
+                    pending.clear()
                 elif landing is eq:
                     # No push along the mode lowers the energy: the negative eigenvalue is not
                     # confirmed (it depends on how hinged planes are turned, increment.md sec. 4b),
@@ -560,21 +574,39 @@ class Path:
                     branch = self.events[at]
                     assert isinstance(branch, Branch)
                     self.events[at] = replace(branch, confirmed=False)
-                    ceiling, step = np.inf, resume
+                    ceiling, retest = _next_ceiling(pending, eq.delta), True
+                    if ceiling == np.inf:
+                        step = resume
                 else:
                     if self.left_branch(last, landing):
                         return states
                     eq, ceiling, step, self.smooth_from = landing, np.inf, resume, len(states)
+                    pending.clear()
             elif ceiling < np.inf:
                 # Below the ceiling the path is continuous; retest the rest of the bracket.
+                if eq.delta >= ceiling and kind == "unstable":
+                    # The ceiling's depth, solved again from a nearer start, is stable: the
+                    # verdict there was the start's (how hinged planes were turned), not the
+                    # configuration's.  Like an instability no push confirms, it is not tested
+                    # again until a later state passes (without this the bisection found it again
+                    # just above every kept state: 3x3 triangle array, a Zeno loop of ~2e-6 L).
+                    self.unconfirmed, doubted = True, True
                 if eq.delta >= ceiling:
-                    ceiling, step = np.inf, resume
+                    ceiling = _next_ceiling(pending, eq.delta)
+                    if ceiling == np.inf:
+                        step = resume
                 retest = True
             if self.tilt_of(eq) >= self.phi_c:
                 final = self.locate_failure(last, eq, len(states))
                 self.events.append(Failure("tilt", final.delta, self.settings.phi_c_deg))
                 states.append(final)
                 return states
+            if sv is not None and sv.stable and eq is outcome.state and not doubted:
+                # Only a state the path keeps ends an unconfirmed instability: a stable state the
+                # energy balance rejects lies past a jump, and resetting there made the bisection
+                # locate the same unconfirmed instability again after every step (a 3x3 hexagon
+                # array: 46 unconfirmed branch events, 808 levels).
+                self.unconfirmed = False
             self._record_contact_change(last, eq)
             states.append(eq)
             if ceiling == np.inf:
@@ -670,6 +702,14 @@ def predict(states: list[Equilibrium], delta: float) -> Equilibrium:
         iterations=0,
         penetration=last.penetration,
     )
+
+
+def _next_ceiling(pending: list[float], delta: float) -> float:
+    """The nearest open ceiling above ``delta`` (removed from ``pending`` with those passed), or
+    inf when none is left."""
+    while pending and pending[-1] <= delta:
+        pending.pop()
+    return pending.pop() if pending else np.inf
 
 
 def _work(a: Equilibrium, b: Equilibrium) -> float:
