@@ -127,12 +127,16 @@ class SQPLevels:
         """The SQP settings of a level: the plain iteration for a landing (``descent``), and no
         plane damping on a held-symmetry path: it moves no converged state, but a fold located
         with it depended on the step (1.4e-5 over 6-30 increments against 4e-7 without,
-        formulations/puncture.md sec. 4)."""
+        formulations/puncture.md sec. 4).  Off a held path a landing damps the planes first: the
+        undamped plain iteration cycles on a hinged plane for all its ``LANDING_MAX_ITER``
+        iterations before the other update is tried (puncture.md sec. 2, Landing)."""
         settings = self.settings
         if self.mirror is not None:
             settings = replace(settings, plane_damping=False)
         if descent:
             settings = replace(settings, anderson_depth=0, max_iter=LANDING_MAX_ITER)
+            if self.mirror is None:
+                settings = replace(settings, plane_damping=True)
         return settings
 
 
@@ -540,7 +544,6 @@ class Path:
                     step = resume
             else:
                 eq, landed = outcome.state, False
-            doubted = False
             sv = self.stability(eq) if self.settings.check and not landed else None
             unstable = sv is not None and not sv.stable and not self.unconfirmed
             if unstable or (self.settings.conservative and not landed and self.snapped(last, eq)):
@@ -584,13 +587,6 @@ class Path:
                     pending.clear()
             elif ceiling < np.inf:
                 # Below the ceiling the path is continuous; retest the rest of the bracket.
-                if eq.delta >= ceiling and kind == "unstable":
-                    # The ceiling's depth, solved again from a nearer start, is stable: the
-                    # verdict there was the start's (how hinged planes were turned), not the
-                    # configuration's.  Like an instability no push confirms, it is not tested
-                    # again until a later state passes (without this the bisection found it again
-                    # just above every kept state: 3x3 triangle array, a Zeno loop of ~2e-6 L).
-                    self.unconfirmed, doubted = True, True
                 if eq.delta >= ceiling:
                     ceiling = _next_ceiling(pending, eq.delta)
                     if ceiling == np.inf:
@@ -601,7 +597,7 @@ class Path:
                 self.events.append(Failure("tilt", final.delta, self.settings.phi_c_deg))
                 states.append(final)
                 return states
-            if sv is not None and sv.stable and eq is outcome.state and not doubted:
+            if sv is not None and sv.stable and eq is outcome.state:
                 # Only a state the path keeps ends an unconfirmed instability: a stable state the
                 # energy balance rejects lies past a jump, and resetting there made the bisection
                 # locate the same unconfirmed instability again after every step (a 3x3 hexagon
