@@ -131,12 +131,16 @@ class SQPLevels:
         """The SQP settings of a level: the plain iteration for a landing (``descent``), and no
         plane damping on a held-symmetry path: it moves no converged state, but a fold located
         with it depended on the step (1.4e-5 over 6-30 increments against 4e-7 without,
-        formulations/puncture.md sec. 4)."""
+        formulations/puncture.md sec. 4).  Off a held path a landing damps the planes first: the
+        undamped plain iteration cycles on a hinged plane for all its ``LANDING_MAX_ITER``
+        iterations before the other update is tried (puncture.md sec. 2, Landing)."""
         settings = self.settings
         if self.mirror is not None:
             settings = replace(settings, plane_damping=False)
         if descent:
             settings = replace(settings, anderson_depth=0, max_iter=LANDING_MAX_ITER)
+            if self.mirror is None:
+                settings = replace(settings, plane_damping=True)
         return settings
 
 
@@ -507,8 +511,8 @@ class Path:
         step = step if step is not None else self.first_step(states[0])
         min_step, max_step = step * 1e-4, step * 100
         ceiling, resume, retest = np.inf, step, False
-        # Eigenvalue margins (mu + STABILITY_TOL) of the last state and of the ceiling's state, and
-        # which end of the bracket moved last (Illinois: the other end's value is halved).
+        pending: list[tuple[float, str]] = []
+        kind = ""
         g_last: float | None = None
         g_ceiling: float | None = None
         moved = 0
@@ -525,7 +529,9 @@ class Path:
                         Rescue("halve_step", last.delta + step, len(states), outcome.failure.status)
                     )
                     if ceiling < np.inf:
-                        ceiling, retest = last.delta + step, False
+                        if kind != "failed":
+                            pending.append((ceiling, kind))
+                        ceiling, retest, kind = last.delta + step, False, "failed"
                     else:
                         step /= 2
                     continue
@@ -538,18 +544,23 @@ class Path:
                     if self.left_branch(last, eq):
                         return states
                     self.smooth_from = len(states)
-                ceiling, step, landed = np.inf, resume, True
+                    pending.clear()
+                (ceiling, kind), retest, landed = _next_ceiling(pending, eq.delta), True, True
+                g_ceiling = None
+                if ceiling == np.inf:
+                    step = resume
             else:
                 eq, landed = outcome.state, False
             sv = self.stability(eq) if self.settings.check and not landed else None
             unstable = sv is not None and not sv.stable and not self.unconfirmed
-            if sv is not None and sv.stable:
-                self.unconfirmed = False
             if unstable or (self.settings.conservative and not landed and self.snapped(last, eq)):
                 if step > SNAP_RESOLUTION * eq.delta:
+                    now = "unstable" if unstable else "snap"
                     if ceiling == np.inf:
                         resume, moved = step, 0
-                    ceiling, retest = eq.delta, False
+                    elif kind != now:
+                        pending.append((ceiling, kind))
+                    ceiling, retest, kind = eq.delta, False, now
                     g_ceiling = sv.min_eigenvalue + STABILITY_TOL if unstable and sv is not None else None
                     if moved == 1 and g_last is not None:
                         g_last /= 2
@@ -566,6 +577,7 @@ class Path:
                     # The plain iteration follows the path where the extrapolated one leapt into
                     # another basin: no jump, an ordinary step.
                     eq, ceiling, step = landing, np.inf, resume
+                    pending.clear()
                 elif landing is eq:
                     # No push along the mode lowers the energy: the negative eigenvalue is not
                     # confirmed (it depends on how hinged planes are turned, increment.md sec. 4b),
@@ -576,16 +588,23 @@ class Path:
                     branch = self.events[at]
                     assert isinstance(branch, Branch)
                     self.events[at] = replace(branch, confirmed=False)
-                    ceiling, step = np.inf, resume
+                    (ceiling, kind), retest = _next_ceiling(pending, eq.delta), True
+                    g_ceiling = None
+                    if ceiling == np.inf:
+                        step = resume
                 else:
                     if self.left_branch(last, landing):
                         return states
                     eq, ceiling, step, self.smooth_from = landing, np.inf, resume, len(states)
+                    pending.clear()
             elif ceiling < np.inf:
                 # Below the ceiling the path is continuous.  Retest the rest of a snap's bracket (the
                 # ceiling's state came from a farther start); an instability's once it is resolved.
                 if eq.delta >= ceiling:
-                    ceiling, step = np.inf, resume
+                    ceiling, kind = _next_ceiling(pending, eq.delta)
+                    g_ceiling = None
+                    if ceiling == np.inf:
+                        step = resume
                 retest = g_ceiling is None or ceiling - eq.delta <= SNAP_RESOLUTION * eq.delta
                 if moved == -1 and g_ceiling is not None:
                     g_ceiling /= 2
@@ -595,6 +614,12 @@ class Path:
                 self.events.append(Failure("tilt", final.delta, self.settings.phi_c_deg))
                 states.append(final)
                 return states
+            if sv is not None and sv.stable and eq is outcome.state:
+                # Only a state the path keeps ends an unconfirmed instability: a stable state the
+                # energy balance rejects lies past a jump, and resetting there made the bisection
+                # locate the same unconfirmed instability again after every step (a 3x3 hexagon
+                # array: 46 unconfirmed branch events, 808 levels).
+                self.unconfirmed = False
             self._record_contact_change(last, eq)
             states.append(eq)
             g_last = sv.min_eigenvalue + STABILITY_TOL if sv is not None else None
@@ -691,6 +716,14 @@ def predict(states: list[Equilibrium], delta: float) -> Equilibrium:
         iterations=0,
         penetration=last.penetration,
     )
+
+
+def _next_ceiling(pending: list[tuple[float, str]], delta: float) -> tuple[float, str]:
+    """The nearest open ceiling above ``delta`` and its kind (removed from ``pending`` with those
+    passed), or (inf, "") when none is left."""
+    while pending and pending[-1][0] <= delta:
+        pending.pop()
+    return pending.pop() if pending else (np.inf, "")
 
 
 def _split(width: float, g_lo: float | None, g_hi: float | None) -> float:

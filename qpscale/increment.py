@@ -99,10 +99,10 @@ class SQPSettings:
         descent of the energy in the K metric (the landing of a snap, puncture.md sec. 4).
     plane_damping : bool
         Weight each pressed separating plane's rotation by the force it carries
-        (``PlaneDamping``, sec. 4b; planes with violated rows move either way): cures the hinge 2-cycle of nearly
-        parallel edges, but creeps where a plane has far to travel.  Converged states are the
-        same either way; off by default, and the puncture path solves a level that fails with
-        one setting again with the other (puncture.md sec. 2).
+        (``PlaneDamping``, sec. 4b; planes with violated rows move either way): cures the hinge
+        2-cycle of nearly parallel edges, but creeps where a plane has far to travel.  Converged
+        states are the same either way; off by default, and the puncture path solves a level
+        that fails with one setting again with the other (puncture.md sec. 2).
     """
 
     solver: str = DEFAULT_SOLVER

@@ -236,12 +236,14 @@ def test_Fc_independent_of_increment_size():
     # The mid-edge path of the 3x3 square is continuous up to a fold of its symmetric branch, where
     # it snaps through phi_c (puncture.md secs. 2-3): the fold is located by bisection to 1e-7 of
     # its depth whatever the step, and F_c is the force just before it.  Near a fold F(delta) has
-    # a square-root singularity, so F_c is reproducible to ~1e-5 (measured spread 2e-6 over 6,
-    # 16 and 30 increments).
+    # a square-root singularity, F ~ F_fold - c sqrt(delta_fold - delta): a state within 1e-7
+    # delta (5e-8 L) of the fold is below it by up to c 2.2e-4, so F_c is reproducible to a few
+    # 1e-5 only (measured spreads: 2e-6 with Clarabel before planes with violated rows kept their
+    # steps, 1.8e-5 with PIQP after).
     a = _run(increments=6, load_point=EDGE, probe=True)
     b = _run(increments=30, load_point=EDGE, probe=True)
     assert not a.branch.branched and not b.branch.branched
-    assert a.Fc_star == pytest.approx(b.Fc_star, rel=1e-5)
+    assert a.Fc_star == pytest.approx(b.Fc_star, rel=5e-5)
 
 
 def test_corner_branch_point_independent_of_increment_size():
