@@ -38,9 +38,15 @@ from .stability import (
 )
 from .tiling import Patch
 
-# Rows this far from contact (L) at the state may carry force: a converged state's gaps are its
-# QP's answer's, and an interior point leaves forces on rows up to ~7e-6 L apart (measured).
-NEAR = 1e-5
+# The rows that may carry force are those within a reach (L) of contact at the state, the first
+# of NEAR_LADDER that balances the state to BALANCED times its force scale.  A converged state's gaps are
+# its QP's answer's: Clarabel's leave forces on rows up to ~7e-6 L apart (its plane unknowns carry
+# its residual over their 1e-6 weight), PIQP's within 1e-7.  A fixed 1e-5 let two rows 6.4e-7 L
+# apart in or out of the support by the states' imbalance noise (1.6e-8 or 7.1e-9: the support
+# threshold falls on either side of the 8e-7 they can carry), and the verdict at one depth flipped
+# between mu* = -2.1e-3 and +0.145 (3x3 square, mid-edge fold; with 1e-7 both read -2.1e-3).
+NEAR_LADDER = (1e-7, 1e-6, 1e-5)
+BALANCED = 1e-7
 # A row is in the support when some member gives it this fraction of the force scale, and NOISE
 # times the state's imbalance (rows 6 and 19 of the 3x3 corner path's last held state reach only
 # 1e-8..3e-8 against an imbalance of 1.2e-8: noise, and they came and went with the scale).
@@ -109,16 +115,19 @@ def multiplier_set(qp: IncrementQP, force_scale: float) -> MultiplierSet:
     is unique, whatever the cap.
     """
     G, h, A, _ = qp.rows()
-    near = np.flatnonzero(h <= NEAR)
     a = A[0].toarray().ravel()
-    B = np.hstack([G[near].T.toarray(), a[:, None]])
     r = -np.asarray(qp.q)
-    k = len(near)
-    # Lawson-Hanson with the free load multiplier split in two (45x faster than BVLS here)
-    x, _ = nnls(np.hstack([B, -a[:, None]]), r, maxiter=50 * (k + 2))
-    w0 = np.r_[x[:k], x[k] - x[k + 1]]
-    residual = float(np.abs(B @ w0 - r).max(initial=0.0))
-    scale = max(force_scale, float(np.max(w0[:k], initial=0.0)), 1e-12)  # sets the LPs' box too
+    for reach in NEAR_LADDER:
+        near = np.flatnonzero(h <= reach)
+        B = np.hstack([G[near].T.toarray(), a[:, None]])
+        k = len(near)
+        # Lawson-Hanson with the free load multiplier split in two (45x faster than BVLS here)
+        x, _ = nnls(np.hstack([B, -a[:, None]]), r, maxiter=50 * (k + 2))
+        w0 = np.r_[x[:k], x[k] - x[k + 1]]
+        residual = float(np.abs(B @ w0 - r).max(initial=0.0))
+        scale = max(force_scale, float(np.max(w0[:k], initial=0.0)), 1e-12)  # sets the LPs' box too
+        if residual <= BALANCED * scale:
+            break
     # a force no larger than the state's own imbalance is noise, not support
     tol, cap, bound = max(SUPPORT * scale, NOISE * residual), 1e-3 * scale, BOX * scale
     ker = _null_space(B)
