@@ -133,6 +133,33 @@ class IncrementQP:
             set_(self, v, _as_vector(v, getattr(self, v), mat.shape[0]))
             set_(self, lab, _labels(lab, getattr(self, lab), mat.shape[0], pre))
 
+    @classmethod
+    def assembled(
+        cls,
+        P: sp.csc_matrix,
+        q: np.ndarray,
+        G: sp.csc_matrix,
+        h: np.ndarray,
+        A: sp.csc_matrix,
+        b: np.ndarray,
+        row_labels_A: tuple[Any, ...],
+    ) -> IncrementQP:
+        """A QP that qpscale assembled itself, without the checks of a user's input.
+
+        The increment QP is built every iteration of every level from matrices whose shapes,
+        symmetry and finiteness hold by construction (a CSC stiffness and diagonal, CSC rows);
+        the checks of ``__post_init__`` (a transpose, a difference, a label per row) took a third
+        of the assembly.  The solvers' residual checks still see every answer.  The rows of ``G``
+        carry no labels (None): a contact row is named by its contact set.
+        """
+        qp = object.__new__(cls)
+        set_ = object.__setattr__
+        for name, value in (("P", P), ("q", q), ("G", G), ("h", h), ("A", A), ("b", b)):
+            set_(qp, name, value)
+        set_(qp, "row_labels_G", None)
+        set_(qp, "row_labels_A", row_labels_A)
+        return qp
+
     @property
     def n(self) -> int:
         """Number of variables."""
