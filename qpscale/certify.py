@@ -29,6 +29,9 @@ FEASIBLE_TOL = 1e-11
 STATIONARY_TOL = 1e-9
 # DAQP's own tolerances, below the certification's (its defaults stop at 1e-6 violation).
 DAQP_TOL = 1e-13
+# Iterations without progress before DAQP declares cycling (its default 10 stopped degenerate
+# plane-formulation QPs that 154 iterations solve; the iteration limit still bounds the work).
+CYCLE_TOL = 1000
 # HiGHS for the multiplier range: its presolve declared the (feasible: DAQP's multipliers satisfy
 # it) degenerate system infeasible, and its default feasibility tolerance 1e-7 would widen the range.
 LP_OPTIONS = {"presolve": False, "primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10}
@@ -136,6 +139,7 @@ def solve_exact(qp: IncrementQP, ranged: Sequence[int] | None = None) -> ExactSo
         primal_tol=DAQP_TOL,
         dual_tol=DAQP_TOL,
         iter_limit=100 * (qp.n + p + m),
+        cycle_tol=CYCLE_TOL,
     )
     x = np.asarray(x, dtype=float)
     lam = np.asarray(info["lam"], dtype=float)

@@ -369,6 +369,7 @@ class Path:
         self.mirror = mirror
         self.smooth_from = 0  # first state after the last jump (the curvature cap's window)
         self.unconfirmed = False  # an instability whose pushes found no lower energy (run)
+        self.base_step: float | None = None  # the first run's first step: the step bounds (run)
 
     def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
         """The level at depth ``delta`` from ``start`` under the level's rescue policy;
@@ -509,7 +510,12 @@ class Path:
         """
         states = list(states) if states else [self.origin()]
         step = step if step is not None else self.first_step(states[0])
-        min_step, max_step = step * 1e-4, step * 100
+        # The bounds come from the path's first step, not from the step a continued path resumes
+        # with: that is the step before a bisection, and a branch found late in one (DAQP's
+        # default-scene path resumed at 1.2e-5 L) capped the whole branch at 100 times it, 400
+        # increments of 1.2e-3 L short of phi_c.
+        self.base_step = self.base_step or step
+        min_step, max_step = self.base_step * 1e-4, self.base_step * 100
         ceiling, resume, retest = np.inf, step, False
         pending: list[tuple[float, str]] = []
         kind = ""

@@ -284,8 +284,10 @@ def _qpsolvers_opts(name: str, tol: float) -> dict[str, Any]:
             "eps_duality_gap_rel": 0.0,
             "iterative_refinement_always_enabled": True,
         },
-        # DAQP's default primal tolerance (1e-6) let a row stay 9.7e-7 violated on the default scene
-        "daqp": {"primal_tol": t, "dual_tol": t},
+        # DAQP's default primal tolerance (1e-6) let a row stay 9.7e-7 violated on the default scene;
+        # its default cycle_tol (10 iterations without progress) declared cycling (exit -2) on a
+        # degenerate QP of the default scene's asymmetric branch that 154 iterations solve
+        "daqp": {"primal_tol": t, "dual_tol": t, "cycle_tol": 100},
         "qpalm": {"eps_abs": t, "eps_rel": 0.0},
         "scs": {"eps_abs": t, "eps_rel": 0.0},
         # CVXOPT stops on the absolute OR relative gap; the relative one scales with |objective|

@@ -87,3 +87,17 @@ def test_every_backend_finds_the_same_branch_point(solver, branch_tol):
     assert ref.branch.branched and other.branch.branched
     assert other.branch.delta_branch[0] == pytest.approx(ref.branch.delta_branch[0], abs=branch_tol)
     assert other.Fc_star == pytest.approx(ref.Fc_star, rel=1e-6)
+
+
+@pytest.mark.slow
+def test_daqp_solves_the_default_scene_and_agrees():
+    # The default scene (5x5 squares, corner load) through DAQP's vertex multipliers: the branch
+    # is found from the multiplier set, and the free branch continues with the held path's step
+    # bounds (a branch found late in a bisection once capped its steps at 1.2e-3 L: 400
+    # increments short of phi_c).  F_c* within the 1e-6 of the default backend's
+    # (measured 5.6e-10).
+    pytest.importorskip("daqp")
+    ref = run_puncture(PunctureSetup())
+    other = run_puncture(PunctureSetup(sqp=SQPSettings(solver="qpsolvers:daqp")))
+    assert ref.branch.branched and other.branch.branched
+    assert other.Fc_star == pytest.approx(ref.Fc_star, rel=1e-6)

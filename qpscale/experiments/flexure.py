@@ -129,7 +129,7 @@ class FlexureSetup:
             raise InvalidDesign(
                 "solver",
                 self.solver,
-                "a backend that solves the plane formulation (clarabel, cvxpy, qpsolvers:*); "
+                "a backend that solves the plane formulation (piqp, clarabel, cvxpy, qpsolvers:*); "
                 "osqp only with formulation='feature'",
             )
         half = (self.membrane.width if self.load_line == "x" else self.membrane.length) / 2

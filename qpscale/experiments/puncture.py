@@ -110,7 +110,7 @@ class PunctureSetup:
             raise InvalidDesign(
                 "solver",
                 self.sqp.solver,
-                "a backend that solves the plane formulation (clarabel, cvxpy, qpsolvers:*); "
+                "a backend that solves the plane formulation (piqp, clarabel, cvxpy, qpsolvers:*); "
                 "osqp only with formulation='feature'",
             )
 
@@ -283,6 +283,7 @@ def _symmetric_point(
         lost = exc
     lo, hi, sv = lost.before[-1], lost.state, lost.stability
     free = puncture_path(setup, patch, K, load, check=True)
+    free.base_step = sym.base_step  # the free branch continues the held path's step bounds
     states = free.switch(lost, sv.mode * _side(sv.mode[load.scale], M))
     record = BranchRecord(
         "second variation",
