@@ -208,21 +208,24 @@ def _with_mirror(qp: IncrementQP, mirror: Mirror, q: np.ndarray, cs: ContactSet 
     each plane's increment onto its partner's.
     """
     D = mirror.dof_rows
-    blocks = [sp.hstack([sp.csc_matrix(D), sp.csc_matrix((D.shape[0], qp.n - D.shape[1]))], format="csc")]
-    rhs = [-D @ q.reshape(-1)]
-    labels = [f"sym{i}" for i in range(D.shape[0])]
+    r, nq = D.shape
+    rows = np.zeros((0, qp.n - nq))
     if cs is not None and cs.planes is not None and cs.planes.count:
         planes = cs.planes
-        rows = mirror.plane_rows(planes.keys, planes.normal, planes.point, planes.basis)
-        if len(rows):
-            pad = sp.csc_matrix((len(rows), D.shape[1]))
-            blocks.append(sp.hstack([pad, sp.csc_matrix(rows)], format="csc"))
-            rhs.append(np.zeros(len(rows)))
-            labels += [f"symplane{i}" for i in range(len(rows))]
+        rows = mirror.plane_rows(planes.keys, planes.normal, planes.point, planes.basis).reshape(
+            -1, qp.n - nq
+        )
     G, h, A, b = qp.rows()
-    A = sp.vstack([A, *blocks], format="csc")
+    # One dense block (a few hundred rows), converted once: stacking sparse pieces per iteration
+    # cost more than the rows themselves.
+    M = np.zeros((A.shape[0] + r + len(rows), qp.n))
+    M[: A.shape[0]] = A.toarray()
+    M[A.shape[0] : A.shape[0] + r, :nq] = D
+    M[A.shape[0] + r :, nq:] = rows
+    labels = [f"sym{i}" for i in range(r)] + [f"symplane{i}" for i in range(len(rows))]
+    rhs = np.concatenate([b, -D @ q.reshape(-1), np.zeros(len(rows))])
     return IncrementQP.assembled(
-        qp.P, qp.q, G, h, A, np.concatenate([b, *rhs]), tuple(qp.row_labels_A or ("load",)) + tuple(labels)
+        qp.P, qp.q, G, h, sp.csc_matrix(M), rhs, tuple(qp.row_labels_A or ("load",)) + tuple(labels)
     )
 
 
