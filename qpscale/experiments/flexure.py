@@ -674,8 +674,7 @@ class _FlexureLevel:
         n, lam = len(z), np.asarray(res.z[n_plate + len(self.model.support_idx) :])
         if cs is not None and cs.planes is not None and cs.planes.count:
             theta = _pinned_only(res.x[n:], cs, lam, violated=self.damped)
-            on = np.unique(cs.plane[(lam > max(1e-6 * float(np.max(lam, initial=0.0)), 1e-12)) & (cs.plane >= 0)])
-            self.pressed = frozenset(cs.planes.keys[j] for j in on.tolist())
+            self.pressed = _pressed_planes(cs, lam)
             cs = merged = replace(cs, plane_memory=cs.planes.advanced(theta))
             if self.damped:
                 self.damping.update(cs, theta, lam)
@@ -688,6 +687,15 @@ class _FlexureLevel:
 
     def state(self, z: Array, answer: FlexureState, progress: Progress) -> FlexureState:
         return replace(answer, z=z, iterations=progress.iterations, penetration=progress.penetration)
+
+
+def _pressed_planes(cs: ContactSet, lam: Array) -> frozenset:
+    """Keys of the planes with a row whose multiplier passes the floor of ``increment._pinned_only``
+    (1e-6 of the largest, at least 1e-12): the planes the QP's step keeps."""
+    assert cs.planes is not None
+    floor = max(1e-6 * float(np.max(lam, initial=0.0)), 1e-12)
+    on = np.unique(cs.plane[(lam > floor) & (cs.plane >= 0)])
+    return frozenset(cs.planes.keys[j] for j in on.tolist())
 
 
 def _drop_stale_planes(
@@ -711,7 +719,8 @@ def _drop_stale_planes(
     world = place(model.patch, z[: model.n_q].reshape(-1, 5))
     pairs = np.unique(keys[:, [0, 2]], axis=0)
     sat = separate(world, pairs)
-    index = {k: j for j, k in enumerate(zip(sat.a.tolist(), sat.pa.tolist(), sat.b.tolist(), sat.pb.tolist()))}
+    pieces = zip(sat.a.tolist(), sat.pa.tolist(), sat.b.tolist(), sat.pb.tolist())
+    index = {k: j for j, k in enumerate(pieces)}
     best = sat.sep[[index[tuple(k)] for k in keys.tolist()]]
     n = np.array([memory[k][0] for k in memory])
     VA, VB = world.verts[keys[:, 0], keys[:, 1]], world.verts[keys[:, 2], keys[:, 3]]
