@@ -47,11 +47,10 @@ MAX_RELEASE_ROUNDS = 20
 # E_m L^2, diagonal of S 70-200 E_m L for the scale DOFs: the membrane in the gaps), so the weight is
 # scaled up by this factor to hold a hinged plane comparably firmly (membrane.md sec. 8).
 FLEXURE_DAMPING = 100.0
-# A pressed separating plane that parts its two pieces by this much (L) less than their best
+# A remembered separating plane that parts its two pieces by this much (L) less than their best
 # separating axis is not a contact certificate any more: it restarts from that axis (membrane.md
-# sec. 8, the staggered triangle array), once the QP's steps are below it too (while the steps are
-# large the planes lag their pieces and the QP's own update moves them).  1000 times the penetration
-# tolerance, so a contact that has converged (both separations within ~1e-9 of zero) never restarts.
+# sec. 8, the staggered triangle array).  1000 times the penetration tolerance, so a contact that has
+# converged (both separations within ~1e-9 of zero) never restarts.
 STALE_PLANE_TOL = 1e-6
 
 
@@ -647,11 +646,10 @@ class _FlexureLevel:
         self.controls = LevelControls(setup.solver, w, inc, STEP_TOL, PENETRATION_TOL, MAX_ITER)
         self.history: list[tuple[sp.csr_matrix, Array, ContactSet | None]] = []
         self.pressed: frozenset = frozenset()  # keys of the planes the last QP's rows pressed
-        self.last_step = np.inf  # max |dx| of the last QP
 
     def linearise(self, z: Array, rows: ContactSet | None, refresh: float | None) -> _Linearised:
         Gp, hp, _ = _plate_rows(self.model, z, self.z_plate)
-        if self.model.setup.formulation == "plane" and self.last_step <= STALE_PLANE_TOL:
+        if self.model.setup.formulation == "plane":
             rows = _drop_stale_planes(self.model, z, rows, self.pressed)
         Gc, hc, cs = _contact_rows(self.model, z, rows, refresh)
         merged = cs
@@ -680,7 +678,6 @@ class _FlexureLevel:
             cs = merged = replace(cs, plane_memory=cs.planes.advanced(theta))
             if self.damped:
                 self.damping.update(cs, theta, lam)
-        self.last_step = float(np.max(np.abs(res.x[:n] - z), initial=0.0))
         answer = FlexureState(self.w, float(np.sum(res.z[:n_plate])), z, merged, lam, 0, 0.0)
         labels = _set_keys(merged, self.model.setup.formulation)
         return replace(step, answer=answer, dx=res.x[:n] - z, rows=cs, labels=labels)
