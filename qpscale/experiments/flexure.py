@@ -21,6 +21,8 @@ from shapely.geometry import Polygon, box
 
 from .. import level
 from ..contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
+from ..contact.placement import place
+from ..contact.separation import separate
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Rescue
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
@@ -46,6 +48,11 @@ MAX_RELEASE_ROUNDS = 20
 # E_m L^2, diagonal of S 70-200 E_m L for the scale DOFs: the membrane in the gaps), so the weight is
 # scaled up by this factor to hold a hinged plane comparably firmly (membrane.md sec. 8).
 FLEXURE_DAMPING = 100.0
+# A remembered separating plane that parts its two pieces by this much (L) less than their best
+# separating axis is not a contact certificate any more: it restarts from that axis (membrane.md
+# sec. 8, the staggered triangle array).  1000 times the penetration tolerance, so a contact that has
+# converged (both separations within ~1e-9 of zero) never restarts.
+STALE_PLANE_TOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -639,9 +646,12 @@ class _FlexureLevel:
         self.Gs = sp.csr_matrix((-np.ones(ns), (np.arange(ns), model.support_idx)), shape=(ns, n))
         self.controls = LevelControls(setup.solver, w, inc, STEP_TOL, PENETRATION_TOL, MAX_ITER)
         self.history: list[tuple[sp.csr_matrix, Array, ContactSet | None]] = []
+        self.pressed: frozenset = frozenset()  # keys of the planes the last QP's rows pressed
 
     def linearise(self, z: Array, rows: ContactSet | None, refresh: float | None) -> _Linearised:
         Gp, hp, _ = _plate_rows(self.model, z, self.z_plate)
+        if self.model.setup.formulation == "plane":
+            rows = _drop_stale_planes(self.model, z, rows, self.pressed)
         Gc, hc, cs = _contact_rows(self.model, z, rows, refresh)
         merged = cs
         if self.model.setup.formulation == "feature":
@@ -665,6 +675,7 @@ class _FlexureLevel:
         n, lam = len(z), np.asarray(res.z[n_plate + len(self.model.support_idx) :])
         if cs is not None and cs.planes is not None and cs.planes.count:
             theta = _pinned_only(res.x[n:], cs, lam, violated=self.damped)
+            self.pressed = _pressed_planes(cs, lam)
             cs = merged = replace(cs, plane_memory=cs.planes.advanced(theta))
             if self.damped:
                 self.damping.update(cs, theta, lam)
@@ -677,6 +688,49 @@ class _FlexureLevel:
 
     def state(self, z: Array, answer: FlexureState, progress: Progress) -> FlexureState:
         return replace(answer, z=z, iterations=progress.iterations, penetration=progress.penetration)
+
+
+def _pressed_planes(cs: ContactSet, lam: Array) -> frozenset:
+    """Keys of the planes with a row whose multiplier passes the floor of ``increment._pinned_only``
+    (1e-6 of the largest, at least 1e-12): the planes the QP's step keeps."""
+    assert cs.planes is not None
+    floor = max(1e-6 * float(np.max(lam, initial=0.0)), 1e-12)
+    on = np.unique(cs.plane[(lam > floor) & (cs.plane >= 0)])
+    return frozenset(cs.planes.keys[j] for j in on.tolist())
+
+
+def _drop_stale_planes(
+    model: FlexureModel, z: Array, rows: ContactSet | None, pressed: frozenset
+) -> ContactSet | None:
+    """``rows`` without the ``pressed`` planes that separate their pieces worse than the best axis.
+
+    A plane's separation of its pieces is ``min n.(x_b) - max n.(x_a)`` over their vertices (its
+    shift is free); the best axis's is the separating-axis test's ``sep`` (the pieces' distance when
+    they are apart).  Where the plane's is lower by more than ``STALE_PLANE_TOL`` the plane can press
+    pieces that do not touch, and its linearised rotation, whose lever is the rows' spread across
+    the hinge, turns it back only by ``lambda * lever / rho`` per QP (membrane.md sec. 8): such a
+    plane is dropped from the memory and ``detect_contacts`` restarts it from the best axis.
+    """
+    if rows is None or not rows.plane_memory or model.patch is None:
+        return rows
+    memory = {k: v for k, v in rows.plane_memory.items() if k in pressed}
+    if not memory:
+        return rows
+    keys = np.array(list(memory), dtype=int).reshape(-1, 4)
+    world = place(model.patch, z[: model.n_q].reshape(-1, 5))
+    pairs = np.unique(keys[:, [0, 2]], axis=0)
+    sat = separate(world, pairs)
+    pieces = zip(sat.a.tolist(), sat.pa.tolist(), sat.b.tolist(), sat.pb.tolist())
+    index = {k: j for j, k in enumerate(pieces)}
+    best = sat.sep[[index[tuple(k)] for k in keys.tolist()]]
+    n = np.array([memory[k][0] for k in memory])
+    VA, VB = world.verts[keys[:, 0], keys[:, 1]], world.verts[keys[:, 2], keys[:, 3]]
+    apart = np.einsum("pvk,pk->pv", VB, n).min(axis=1) - np.einsum("pvk,pk->pv", VA, n).max(axis=1)
+    stale = best > apart + STALE_PLANE_TOL
+    if not stale.any():
+        return rows
+    drop = {k for k, s in zip(memory, stale.tolist()) if s}
+    return replace(rows, plane_memory={k: v for k, v in rows.plane_memory.items() if k not in drop})
 
 
 def _membrane_qp(
