@@ -20,6 +20,8 @@ from qpscale.increment import SQPSettings
 from qpscale.solvers import available_solvers
 from qpscale.substrate import SubstrateModel, isolated_block
 
+from .cases import work_balance
+
 PHI_C = np.deg2rad(13.0)
 SMALL = Design(rings=1)  # 3x3 square array: contact and coupling at a tenth of the 5x5 cost
 
@@ -426,10 +428,5 @@ def test_slanted_arrays_reach_phi_c_and_their_work_balances(design, point):
     setup = PunctureSetup(design=design, probe=False, load_point=point)
     result = run_puncture(setup)
     assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
-    _, K = build_model(setup)
-    w, F = result.w_star, result.F_star
-    work = float(np.sum(0.5 * np.diff(w) * (F[1:] + F[:-1])))
-    q = result.states[-1].q.ravel()
-    energy = 0.5 * float(q @ (K @ q))
-    released = sum(e.energy_released for e in result.events if e.kind == "snap")
-    assert work == pytest.approx(energy + released, rel=2e-3)
+    work, balance = work_balance(setup, result)
+    assert work == pytest.approx(balance, rel=2e-3)

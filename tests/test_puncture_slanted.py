@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 
 from qpscale.continuation import _next_ceiling
-from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture
+from qpscale.experiments.puncture import PunctureSetup, run_puncture
 from qpscale.tiling import Design
+
+from .cases import work_balance
 
 # (design, coupling, nu, load point) as the fuzz drew them (design 7 of seed 1000).
 LOOPED = {
@@ -51,13 +53,8 @@ def test_a_looping_event_location_now_reaches_phi_c_with_its_work_balanced(name)
     unconfirmed = [e.delta for e in result.events if e.kind == "branch" and not e.confirmed]
     assert len(unconfirmed) <= 1, unconfirmed
     assert result.qp_solves < 400  # levels solved (808 before)
-    _, K = build_model(setup)
-    w, F = result.w_star, result.F_star
-    work = float(np.sum(0.5 * np.diff(w) * (F[1:] + F[:-1])))
-    q = result.states[-1].q.ravel()
-    energy = 0.5 * float(q @ (K @ q))
-    released = sum(e.energy_released for e in result.events if e.kind == "snap")
-    assert work == pytest.approx(energy + released, rel=2e-3)
+    work, balance = work_balance(setup, result)
+    assert work == pytest.approx(balance, rel=2e-3)
 
 
 def test_an_inner_bracket_returns_to_the_nearest_open_ceiling_above_the_state():
