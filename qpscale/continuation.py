@@ -503,8 +503,8 @@ class Path:
         ``SNAP_RESOLUTION``; a loss of stability is located by regula falsi (Illinois) on the
         smallest eigenvalue instead, which is smooth along the branch (``_split``), and its
         ceiling is retested once, when the bracket is below the resolution.  The path then leaves
-        its branch (the jump's landing state, or the
-        unstable state pushed along its mode), and a landing past phi_c is the failure (sec. 3-4).
+        its branch (the jump's landing state, or the unstable state pushed along its mode), and a
+        landing past phi_c is the failure (sec. 3-4).
         On a symmetric path (``mirror``) a located instability whose mode breaks the symmetry
         raises :class:`Bifurcation` instead.
         """

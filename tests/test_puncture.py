@@ -74,12 +74,13 @@ def test_vertex_orbits_follow_the_symmetry(design, orbits):
 
 
 def test_backends_agree_on_Fc():
-    # Clarabel, the CVXPY formulation of the same QPs and PIQP through qpsolvers: 1e-6 relative, the
-    # issue's bar; each QP is solved to 1e-9 KKT and the SQP stops at |dq| <= 1e-8.  The corner
-    # load branches (sec. 4), so this also checks that every backend follows the same branch.
-    solvers = ["clarabel", "cvxpy"] + [s for s in available_solvers() if s == "qpsolvers:piqp"]
+    # PIQP (the default), Clarabel, the CVXPY formulation of the same QPs and PIQP through
+    # qpsolvers: 1e-6 relative, the bar; each QP is solved to 1e-9 KKT and the SQP stops at
+    # |dq| <= 1e-8.  The corner load branches (sec. 4), so this also checks that every backend
+    # follows the same branch.
+    solvers = ["piqp", "clarabel", "cvxpy"] + [s for s in available_solvers() if s == "qpsolvers:piqp"]
     values = {s: _run(load_point=(1.0, 1.0), probe=True, sqp=SQPSettings(solver=s)) for s in solvers}
-    ref = values["clarabel"]
+    ref = values["piqp"]
     assert ref.branch.branched
     for solver, result in values.items():
         assert result.Fc_star == pytest.approx(ref.Fc_star, rel=1e-6), solver

@@ -3,7 +3,7 @@
 PIQP (a proximal interior-point method) takes ``min 1/2 x'Px + c'x  s.t.  Ax = b,
 h_l <= Gx <= h_u``; our rows have no lower bound.  Its Lagrangian adds ``y'(Ax - b)`` and
 ``z_u'(Gx - h_u) - z_l'(Gx - h_l)``, so our ``y`` is its ``y`` and our ``z`` its ``z_u - z_l``
-(``z_l`` is zero without lower bounds), eq. (11).  The proximal terms regularise the KKT system
+(``z_l`` is zero without lower bounds), eq. (11a).  The proximal terms regularise the KKT system
 without changing the problem, which is what the plane formulation's dependent active rows need.
 """
 

@@ -191,7 +191,7 @@ def _qpsolvers_wanted(quick: bool) -> tuple[str, ...]:
 
 def skipped_methods(quick: bool, fuzz: bool = False) -> list[str]:
     """Backends the bench would run that are not installed here: skipped, and listed as such in
-    the bench's output (a plain install has no PIQP, DAQP, ProxQP, quadprog or HiGHS)."""
+    the bench's output (a plain install has no ProxQP, quadprog or HiGHS)."""
     have = set(available_solvers())
     wanted = [f"qpsolvers:{n}" for n in _qpsolvers_wanted(quick)]
     if fuzz:
