@@ -19,7 +19,7 @@ import os
 import signal
 import sys
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from functools import wraps
 from pathlib import Path
 from typing import Any, TypeVar
@@ -367,6 +367,15 @@ def _progress(description: str):
     )
 
 
+@contextlib.contextmanager
+def _spinner(name: str) -> Iterator[Callable[[str], None]]:
+    """A spinner named ``name`` on stderr while the block runs; yields the ``progress`` callback
+    that shows a stage's message beside the name."""
+    with _progress(name) as bar:
+        task = bar.add_task(name, total=None)
+        yield lambda msg: bar.update(task, description=f"{name}: {msg}")
+
+
 def _rings_value(text: str | None) -> int | str | None:
     """``--rings`` as an integer, or "auto"; anything else is refused naming the flag."""
     if text is None or text.strip().lower() == "auto":
@@ -469,8 +478,7 @@ def puncture(
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c."""
     from .api import puncture as run
 
-    with _progress("puncture") as bar:
-        task = bar.add_task("puncture", total=None)
+    with _spinner("puncture") as progress:
         report = run(
             shape,
             tiling,
@@ -494,7 +502,7 @@ def puncture(
             vtk=vtk,
             max_memory_gb=max_memory_gb,
             max_minutes=max_minutes,
-            progress=lambda msg: bar.update(task, description=f"puncture: {msg}"),
+            progress=progress,
             rings_tol=rings_tol,
         )
 
@@ -564,8 +572,7 @@ def flexure(
     """Flexure: three-point bending of the membrane (bare, one scale, or covered), C_f*."""
     from .api import flexure as run
 
-    with _progress("flexure") as bar:
-        task = bar.add_task("flexure", total=None)
+    with _spinner("flexure") as progress:
         report = run(
             shape,
             tiling,
@@ -586,7 +593,7 @@ def flexure(
             vtk=vtk,
             max_memory_gb=max_memory_gb,
             max_minutes=max_minutes,
-            progress=lambda msg: bar.update(task, description=f"flexure: {msg}"),
+            progress=progress,
         )
 
     def summary(p: dict[str, Any]) -> None:
@@ -773,13 +780,12 @@ def bench(
     check_workers(v.integer("workers", workers, 1, 1024))
     n_fuzz = v.integer("fuzz", fuzz_n, 0, 100_000)
     out_dir = v.output_dir("out", out)
-    with _progress("bench") as bar, terminate_as_interrupt():
-        task = bar.add_task("bench", total=None)
+    with _spinner("bench") as progress, terminate_as_interrupt():
         payload = run_all(
             out_dir,
             quick,
             limit,
-            progress=lambda m: bar.update(task, description=f"bench: {m}"),
+            progress=progress,
             fuzz_n=n_fuzz,
             workers=workers,
         )
