@@ -280,6 +280,13 @@ class PlaneDamping:
                 self.scale[k] = 0.25 * scale if scale > 1e-3 else 0.0
 
 
+def pressed_rows(lam: np.ndarray) -> np.ndarray:
+    """The rows whose multiplier counts as a force: above 1e-6 of the largest and 1e-12 (what a
+    QP leaves on rows that carry nothing is of its tolerance's size)."""
+    lam = np.asarray(lam, dtype=float)
+    return lam > max(1e-6 * float(np.max(lam, initial=0.0)), 1e-12)
+
+
 def _pinned_only(
     theta: np.ndarray,
     cs: ContactSet,
@@ -300,8 +307,7 @@ def _pinned_only(
     if lam is None:
         return theta
     carried = np.zeros(cs.planes.count, dtype=bool) if cs.planes is not None else np.zeros(0, dtype=bool)
-    floor = max(1e-6 * float(np.max(lam, initial=0.0)), 1e-12)
-    pressed = (lam > floor) | (np.asarray(cs.gap) < 0.0) if violated else lam > floor
+    pressed = pressed_rows(lam) | (np.asarray(cs.gap) < 0.0) if violated else pressed_rows(lam)
     on = pressed & (cs.plane >= 0)
     carried[np.unique(cs.plane[on])] = True
     if mirror is not None and cs.planes is not None:

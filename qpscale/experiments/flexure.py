@@ -26,7 +26,7 @@ from ..contact.separation import separate
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Rescue
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
-from ..increment import PLANE_PROX, PlaneDamping, _pinned_only
+from ..increment import PLANE_PROX, PlaneDamping, _pinned_only, pressed_rows
 from ..level import LevelControls, LevelOutcome, LevelStatus, Progress, Step, qp_step
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP
@@ -691,11 +691,10 @@ class _FlexureLevel:
 
 
 def _pressed_planes(cs: ContactSet, lam: Array) -> frozenset:
-    """Keys of the planes with a row whose multiplier passes the floor of ``increment._pinned_only``
-    (1e-6 of the largest, at least 1e-12): the planes the QP's step keeps."""
+    """Keys of the planes with a row that carries force (``increment.pressed_rows``, the floor of
+    ``_pinned_only``): the planes the QP's step keeps."""
     assert cs.planes is not None
-    floor = max(1e-6 * float(np.max(lam, initial=0.0)), 1e-12)
-    on = np.unique(cs.plane[(lam > floor) & (cs.plane >= 0)])
+    on = np.unique(cs.plane[pressed_rows(lam) & (cs.plane >= 0)])
     return frozenset(cs.planes.keys[j] for j in on.tolist())
 
 
