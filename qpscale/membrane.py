@@ -13,11 +13,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import cached_property
+from typing import Any
 
 import numpy as np
-import qdldl
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from skfem import Basis, BilinearForm, ElementHex1, ElementVector, MeshHex
 from skfem.helpers import ddot, div, sym_grad
 
@@ -302,9 +301,13 @@ class Condensed:
         Indices into the generalised DOFs.
     K_g : csc_matrix (n_gen, n_gen)
         ``T' K T``.
-    factor : SuperLU
-        The factorisation of ``K_cc`` (in the fill-reducing order ``perm``), kept for eq. (7).
-    perm : ndarray of int
+    factor : cvxopt CHOLMOD factor
+        The supernodal Cholesky factorisation ``P K_cc P' = L L'``, kept for eq. (7).
+    bordered : ndarray of int
+        The DOFs that were retained or held at the condensation, in that order.
+    S_bordered : ndarray (len(bordered), len(bordered))
+        The Schur complement onto all of them (eq. (8) with held DOFs free); ``S`` and every
+        release (eq. (8c)) are blocks of it.
     """
 
     S: Array
@@ -313,8 +316,9 @@ class Condensed:
     held: np.ndarray
     condensed: np.ndarray
     K_g: sp.csc_matrix
-    factor: spla.SuperLU
-    perm: np.ndarray
+    factor: Any
+    bordered: np.ndarray
+    S_bordered: Array
 
     @cached_property
     def K_c(self) -> sp.csc_matrix:
@@ -323,9 +327,10 @@ class Condensed:
 
     def solve_cc(self, rhs: Array) -> Array:
         """``K_cc^{-1} rhs`` for ``rhs`` of shape (n_condensed,) or (n_condensed, k)."""
-        out = np.empty_like(rhs)
-        out[self.perm] = self.factor.solve(np.ascontiguousarray(rhs[self.perm]))
-        return out
+        cvxopt, cholmod = _cholmod()
+        B = cvxopt.matrix(np.array(rhs, dtype=float).reshape(len(rhs), -1))
+        cholmod.solve(self.factor, B)
+        return np.array(B).reshape(np.shape(rhs))
 
     def generalised(self, z_r: Array) -> Array:
         """All generalised DOFs for retained values ``z_r``: held at zero, condensed by eq. (7)."""
@@ -345,18 +350,16 @@ class Condensed:
     def released(self, dofs: np.ndarray) -> Condensed:
         """The held ``dofs`` appended to the retained ones, ``S`` bordered by their columns (eq. (8c)).
 
-        One solve per new column with the kept factorisation; nothing is refactorised.
+        The bordered block is read from ``S_bordered``: nothing is solved or refactorised.
         """
         dofs = np.asarray(dofs, dtype=int)
         if not np.all(np.isin(dofs, self.held)) or len(np.unique(dofs)) != len(dofs):
             raise InvalidDesign("dofs", dofs.tolist(), "distinct held DOFs")
-        Xn = -self.solve_cc(self.K_c[:, dofs].toarray())
-        Kg = sp.csr_matrix(self.K_g)
-        S_rn = Kg[self.retained][:, dofs].toarray() + self.K_c[:, self.retained].T @ Xn
-        S_nn = Kg[dofs][:, dofs].toarray() + self.K_c[:, dofs].T @ Xn
-        S = np.block([[self.S, S_rn], [S_rn.T, 0.5 * (S_nn + S_nn.T)]])
+        retained = np.r_[self.retained, dofs]
+        order = np.argsort(self.bordered)
+        at = order[np.searchsorted(self.bordered, retained, sorter=order)]
         held = self.held[~np.isin(self.held, dofs)]
-        return replace(self, S=S, retained=np.r_[self.retained, dofs], held=held)
+        return replace(self, S=self.S_bordered[np.ix_(at, at)], retained=retained, held=held)
 
 
 def generalised_map(
@@ -389,14 +392,36 @@ def generalised_map(
     return T, gen_of
 
 
+def _cholmod() -> tuple[Any, Any]:
+    """cvxopt and its CHOLMOD, imported on first use (only flexure condenses), supernodal."""
+    import cvxopt
+    import cvxopt.cholmod as cholmod
+
+    cholmod.options["supernodal"] = 2
+    return cvxopt, cholmod
+
+
+def _lower(M: sp.spmatrix) -> Any:
+    """The lower triangle of symmetric ``M`` as a cvxopt sparse matrix."""
+    cvxopt, _ = _cholmod()
+    C = sp.tril(M, format="coo")
+    return cvxopt.spmatrix(C.data, C.row.astype(int), C.col.astype(int), size=C.shape)
+
+
 def _amd(pattern: sp.spmatrix) -> np.ndarray:
-    """Approximate-minimum-degree order of a symmetric pattern (qdldl's, on a graph Laplacian + I)."""
+    """Approximate-minimum-degree order of a symmetric pattern (CHOLMOD's, on a graph Laplacian + I)."""
+    cvxopt, cholmod = _cholmod()
     A = sp.csr_matrix(pattern, copy=True)
     A.data[:] = -1.0
     A.setdiag(0.0)
     A.eliminate_zeros()
     A = A + sp.diags(1.0 - np.asarray(A.sum(axis=1)).ravel())
-    return np.asarray(qdldl.Solver(sp.triu(A, format="csc"), upper=True).factors()[2], dtype=int)
+    L = _lower(A)
+    F = cholmod.symbolic(L, uplo="L")
+    cholmod.numeric(L, F)  # the permutation is read from the factor: P applied to 0..n-1
+    order = cvxopt.matrix(np.arange(A.shape[0], dtype=float))
+    cholmod.solve(F, order, sys=7)
+    return np.rint(np.array(order).ravel()).astype(int)
 
 
 def _fill_reducing_order(
@@ -427,9 +452,10 @@ def condense(
     """Schur complement of ``T' K T`` onto ``retained`` by one sparse factorisation, eqs. (6)-(8).
 
     ``held`` generalised DOFs are fixed at zero (neither retained nor condensed).  ``K_cc`` is
-    ordered by approximate minimum degree on the node graph (``_fill_reducing_order``), then
-    factorised by SuperLU in that order without pivoting (``K_cc`` is positive definite), whose
-    solve takes all retained columns at once (eq. (7)).
+    ordered by approximate minimum degree on the node graph (``_fill_reducing_order``) and
+    factorised by CHOLMOD (supernodal, ``P K_cc P' = L L'``).  The Schur complement onto the
+    retained and held DOFs together is ``K_bb - Y'Y`` with ``Y = L^{-1} P K_cb``: one forward
+    solve whose right-hand sides are sparse (formulations/membrane.md sec. 5).
     """
     Kg = sp.csc_matrix(T.T @ K @ T)
     n = Kg.shape[0]
@@ -438,23 +464,27 @@ def condense(
     if len(np.intersect1d(retained, held)) or len(np.unique(retained)) != len(retained):
         raise InvalidDesign("retained", "repeated or held DOFs", "distinct DOFs, none of them held")
     condensed = np.setdiff1d(np.arange(n), np.r_[retained, held])
-    Kcc = Kg[condensed][:, condensed].tocsc()
+    bordered = np.r_[retained, held]
+    rows = sp.csr_matrix(Kg)[condensed]
+    Kcc = sp.csc_matrix(rows[:, condensed])
+    cvxopt, cholmod = _cholmod()
+    A = _lower(Kcc)
     try:
         perm = _fill_reducing_order(K, T, condensed, Kcc)
-        opts = {"SymmetricMode": True}
-        factor = spla.splu(
-            Kcc[perm][:, perm].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options=opts
-        )
-    except Exception as exc:  # singular: a rigid mode not removed by supports or pins
-        raise SolverFailure("superlu", "singular membrane stiffness", detail=str(exc)) from exc
-    empty = np.zeros(0, dtype=int)
-    cond = Condensed(
-        np.zeros((0, 0)), sp.csr_matrix(T), empty, np.r_[retained, held], condensed, Kg, factor, perm
-    )
-    cond = cond.released(retained)
-    if not np.all(np.isfinite(cond.S)):
-        raise SolverFailure("superlu", "non-finite condensation")
-    return replace(cond, held=held)
+        factor = cholmod.symbolic(A, p=cvxopt.matrix(perm.astype(int)), uplo="L")
+        cholmod.numeric(A, factor)
+    except ArithmeticError as exc:  # not positive definite: a rigid mode not removed by supports or pins
+        raise SolverFailure("cholmod", "singular membrane stiffness", detail=str(exc)) from exc
+    C = sp.csc_matrix(rows[:, bordered]).tocoo()
+    Y = cvxopt.spmatrix(C.data, C.row.astype(int), C.col.astype(int), size=C.shape)
+    Y = cholmod.spsolve(factor, cholmod.spsolve(factor, Y, sys=7), sys=4)
+    Ys = sp.csc_matrix((np.array(Y.V).ravel(), (np.array(Y.I).ravel(), np.array(Y.J).ravel())), shape=Y.size)
+    S_b = sp.csr_matrix(Kg)[bordered][:, bordered].toarray() - (Ys.T @ Ys).toarray()
+    S_b = 0.5 * (S_b + S_b.T)
+    if not np.all(np.isfinite(S_b)):
+        raise SolverFailure("cholmod", "non-finite condensation")
+    m = len(retained)
+    return Condensed(S_b[:m, :m], sp.csr_matrix(T), retained, held, condensed, Kg, factor, bordered, S_b)
 
 
 @dataclass(frozen=True)

@@ -109,6 +109,30 @@ def test_condensation_matches_a_direct_solve():
     assert np.allclose(u[tie[0]], (tie_rows(tie[1], tie[2]) @ zr[:5]).reshape(-1, 3), atol=1e-14)
 
 
+def test_release_is_the_condensation_with_those_dofs_retained():
+    # A held DOF released into the retained set (eq. (8c), read from the bordered Schur complement)
+    # against condensing again with it retained from the start; and the held DOFs' reactions
+    # against K_g g of the full generalised field.  Both are the same algebra by two routes, so
+    # round-off (1e-10 of the stiffness scale) is the tolerance.
+    mm = small(0.45)
+    bottom = mm.face_nodes(False)
+    top = mm.face_nodes(True)
+    T, gen_of = generalised_map(len(mm.nodes), [], node_dofs(bottom[:2]))
+    retained = gen_of[3 * top[:4] + 2]
+    held = gen_of[3 * bottom[2:8] + 2]
+    cond = condense(mm.K, T, retained, held)
+    freed = cond.released(held[[4, 1]])
+    direct = condense(mm.K, T, np.r_[retained, held[[4, 1]]], np.delete(held, [4, 1]))
+    scale = np.max(np.abs(direct.S))
+    assert np.max(np.abs(freed.S - direct.S)) <= 1e-10 * scale
+    assert set(freed.held.tolist()) == set(direct.held.tolist())
+    zr = np.linspace(-1.0, 1.0, len(retained)) * 1e-2
+    Kg = (T.T @ mm.K @ T).toarray()
+    g = cond.generalised(zr)
+    assert np.allclose(cond.reactions(zr), (Kg @ g)[held], rtol=0, atol=1e-10 * scale * 1e-2)
+    assert np.max(np.abs((Kg @ g)[cond.condensed])) <= 1e-10 * scale * 1e-2
+
+
 def test_model_validation():
     with pytest.raises(InvalidDesign, match="nu_m"):
         MembraneModel(nu=0.6)

@@ -436,12 +436,16 @@ def support_forces(model: FlexureModel, z: Array) -> tuple[np.ndarray, Array, Ar
 def _pins(xyz: Array, bottom: np.ndarray) -> np.ndarray:
     """Three reaction-free pins removing the in-plane rigid modes (eq. (9)).
 
-    u_x, u_y at the bottom node nearest the centre and u_y at the bottom node nearest (a/4, 0).
+    u_x, u_y at the bottom node nearest the centre and u_y at the bottom node nearest (a/4, 0) off
+    the centre node's line x = const (on a narrow membrane the nearest node to (a/4, 0) can be the
+    centre node itself, which would leave the rotation about z free and ``K_cc`` singular).
     """
     b = xyz[bottom]
     c = bottom[np.argmin(np.hypot(b[:, 0], b[:, 1]))]
     a = 0.25 * b[:, 0].max()
-    e = bottom[np.argmin(np.hypot(b[:, 0] - a, b[:, 1]))]
+    dist = np.hypot(b[:, 0] - a, b[:, 1])
+    dist[np.abs(b[:, 0] - xyz[c, 0]) < 1e-9] = np.inf
+    e = bottom[np.argmin(dist)]
     return np.array([3 * c, 3 * c + 1, 3 * e + 1])
 
 
