@@ -128,7 +128,7 @@ def graded_axis(
     keep = np.array([lo <= f <= hi for f in fine], dtype=bool)
     fine_in, sizes = np.asarray(fine, dtype=float)[keep], sizes[keep]
     pts = np.unique(np.round(np.r_[lo, hi, [b for b in breaks if lo < b < hi], fine_in], 12))
-    out = [pts[:1]]
+    out: list[Array] = [np.asarray(pts[:1], dtype=float)]
     for a, b in zip(pts[:-1], pts[1:]):
         if len(fine_in) == 0:
             n = max(1, int(np.ceil((b - a) / h - 1e-9)))
