@@ -67,18 +67,20 @@ def _edge_classes(verts: Array, edges: np.ndarray) -> tuple[np.ndarray, list[int
     return cls, reps
 
 
+def _edge_key(a: np.ndarray, b: np.ndarray) -> tuple[float, ...]:
+    """A directed base edge ``a -> b`` as a hashable key (coordinates rounded to 1e-9 L)."""
+    return tuple(float(round(float(v), 9)) for v in np.r_[a, b])
+
+
 def _internal_faces(pieces: list) -> np.ndarray:
     """(P, nf) mask of side faces whose base edge another piece of the same scale shares."""
     n_faces = len(pieces[0].faces)
     out = np.zeros((len(pieces), n_faces), dtype=bool)
-    edges = [
-        {tuple(np.round(np.r_[p.base[i], p.base[(i + 1) % p.n_base]], 9)) for i in range(p.n_base)}
-        for p in pieces
-    ]
+    edges = [{_edge_key(p.base[i], p.base[(i + 1) % p.n_base]) for i in range(p.n_base)} for p in pieces]
     for k, p in enumerate(pieces):
         for i in range(p.n_base):
             a, b = p.base[i], p.base[(i + 1) % p.n_base]
-            reverse = tuple(np.round(np.r_[b, a], 9))
+            reverse = _edge_key(b, a)
             if any(reverse in e for j, e in enumerate(edges) if j != k):
                 out[k, 2 + i] = True  # faces: bottom, top, then side i
     return out

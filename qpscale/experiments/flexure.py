@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -196,7 +197,8 @@ def kept_scales(setup: FlexureSetup) -> Patch:
     if setup.mode == "isolated":
         return build_patch(setup.design.isolated())
     a, b = setup.membrane.length / 2, setup.membrane.width / 2
-    rings, count, patch = 2, -1, None
+    rings, count = 2, -1
+    patch = build_patch(setup.design.with_(rings=rings))
     while rings <= 40:
         patch = build_patch(setup.design.with_(rings=rings))
         inside = (np.abs(patch.centroids[:, 0]) < a) & (np.abs(patch.centroids[:, 1]) < b)
@@ -559,8 +561,8 @@ def _merge_rows(
     ``z``: their material points follow their scales' exact rigid motion (``_relinearise``).
     """
     G, h, cs = history[-1]
-    if cs is None:
-        return G, h, None
+    if cs is None or model.patch is None:
+        return G, h, cs
     seen = set(_row_keys(cs))
     Gs, hs, parts = [G], [h], [cs]
     for _, _, ck in reversed(history[:-1]):
@@ -614,13 +616,13 @@ _ROW_FIELDS = ("a", "b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kin
 
 
 def _take(cs: ContactSet, keep: np.ndarray) -> ContactSet:
-    rows = {f: getattr(cs, f)[keep] for f in _ROW_FIELDS}
+    rows: dict[str, Any] = {f: getattr(cs, f)[keep] for f in _ROW_FIELDS}
     labels = tuple(lab for lab, k in zip(cs.labels, keep) if k)
     return replace(cs, labels=labels, **rows)
 
 
 def _concat(parts: list[ContactSet]) -> ContactSet:
-    rows = {f: np.concatenate([getattr(c, f) for c in parts]) for f in _ROW_FIELDS}
+    rows: dict[str, Any] = {f: np.concatenate([getattr(c, f) for c in parts]) for f in _ROW_FIELDS}
     labels = tuple(lab for c in parts for lab in c.labels)
     return replace(parts[0], labels=labels, **rows)
 
@@ -676,16 +678,17 @@ class _FlexureLevel:
         res, step = qp_step(qp, c.solver, ACCURACY, tightened, c.increment)
         if res is None:
             return step
-        n, lam = len(z), np.asarray(res.z[n_plate + len(self.model.support_idx) :])
+        x, zs = np.asarray(res.x), np.asarray(res.z)
+        n, lam = len(z), zs[n_plate + len(self.model.support_idx) :]
         if cs is not None and cs.planes is not None and cs.planes.count:
-            theta = _pinned_only(res.x[n:], cs, lam, violated=self.damped)
+            theta = _pinned_only(x[n:], cs, lam, violated=self.damped)
             self.pressed = _pressed_planes(cs, lam)
             cs = merged = replace(cs, plane_memory=cs.planes.advanced(theta))
             if self.damped:
                 self.damping.update(cs, theta, lam)
-        answer = FlexureState(self.w, float(np.sum(res.z[:n_plate])), z, merged, lam, 0, 0.0)
+        answer = FlexureState(self.w, float(np.sum(zs[:n_plate])), z, merged, lam, 0, 0.0)
         labels = _set_keys(merged, self.model.setup.formulation)
-        return replace(step, answer=answer, dx=res.x[:n] - z, rows=cs, labels=labels)
+        return replace(step, answer=answer, dx=x[:n] - z, rows=cs, labels=labels)
 
     def penetration(self, z: Array) -> float:
         return _exact_penetration(self.model, z, self.z_plate)
