@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..geometry import Array
 from ..tiling import Patch
@@ -38,15 +39,46 @@ def map_dofs(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return out
 
 
-def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
-    """Rows ``(r, 5 n)`` spanning the DOF modes the reflection (M, perm) reverses.
+def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csr_matrix:
+    """Rows ``(r, 5 n)`` (sparse, orthonormal) spanning the DOF modes the reflection (M, perm) reverses.
 
     A configuration is mirror-symmetric exactly when these rows annihilate it; imposed as
-    equalities in the increment QP they hold a path on its symmetric branch.
+    equalities in the increment QP they hold a path on its symmetric branch.  The map S of
+    :func:`map_dofs` is orthogonal and an involution, so the reversed modes are the range of
+    (I - S) / 2, built orbit by orbit (eq. (25a)): for a pair of scales i -> p != i, the five
+    rows (e_ik - S e_ik) / sqrt 2 (orthonormal, as S e_ik lies on scale p); for a scale on the
+    mirror (p = i), the eigenvectors of eigenvalue -1 of its own 5 x 5 block.  At most ten
+    entries a row: the rows cost memory linear in n.
     """
-    S = np.column_stack([map_dofs(e.reshape(n, 5), M, perm).ravel() for e in np.eye(5 * n)])
-    w, V = np.linalg.eigh(0.5 * (S + S.T))
-    return np.ascontiguousarray(V[:, w < 0].T)
+    M = np.asarray(M, dtype=float)
+    perm = np.asarray(perm, dtype=int)
+    B = np.zeros((5, 5))  # S on one scale's DOFs: (u_x, u_y) by M, u_z kept, (phi_x, phi_y) by det(M) M
+    B[:2, :2] = M
+    B[2, 2] = 1.0
+    B[3:5, 3:5] = np.linalg.det(M) * M
+    scales = np.arange(n)
+    pairs = scales[perm > scales]
+    w, V = np.linalg.eigh(0.5 * (B + B.T))
+    own = V[:, w < 0].T  # (k, 5): the reversed modes of a scale mapped onto itself
+    fixed = scales[perm == scales]
+    # pair rows: e_ik / sqrt 2 on scale i, -(B e_k) / sqrt 2 on scale p
+    k = np.arange(5)
+    pr = np.repeat(np.arange(5 * len(pairs)), 6)
+    cols_i = 5 * pairs[:, None] + k  # (P, 5)
+    cols_p = 5 * perm[pairs][:, None, None] + np.broadcast_to(k, (5, 5))  # (P, 5 (row k), 5)
+    vals = np.concatenate(
+        [np.ones((len(pairs), 5, 1)), -np.broadcast_to(B.T, (len(pairs), 5, 5))], axis=2
+    ) / np.sqrt(2.0)
+    cols = np.concatenate([cols_i[:, :, None], cols_p], axis=2)
+    fr = 5 * len(pairs) + np.repeat(np.arange(len(own) * len(fixed)), 5)
+    fcols = (5 * fixed[:, None, None] + np.broadcast_to(k, (len(own), 5))).reshape(-1)
+    fvals = np.broadcast_to(own, (len(fixed), *own.shape)).reshape(-1)
+    r = 5 * len(pairs) + len(own) * len(fixed)
+    out = sp.csr_matrix(
+        (np.r_[vals.ravel(), fvals], (np.r_[pr, fr], np.r_[cols.ravel(), fcols])), shape=(r, 5 * n)
+    )
+    out.eliminate_zeros()
+    return out
 
 
 def _piece_images(patch: Patch, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
@@ -84,15 +116,15 @@ class Mirror:
         ``pieces[i, p]``: the piece of scale ``perm[i]`` that piece ``p`` of scale ``i`` maps onto.
     centre : ndarray (3,)
         A point of the mirror plane: scale 0's reference point, in L.
-    dof_rows : ndarray (r, 5 n)
-        Orthonormal rows spanning the antisymmetric DOF modes.
+    dof_rows : scipy.sparse.csr_matrix (r, 5 n)
+        Orthonormal rows spanning the antisymmetric DOF modes (at most ten entries a row).
     """
 
     M: Array
     perm: np.ndarray
     pieces: np.ndarray
     centre: Array
-    dof_rows: Array
+    dof_rows: sp.csr_matrix
 
     @classmethod
     def of(cls, patch: Patch, M: np.ndarray, perm: np.ndarray) -> Mirror:
@@ -157,8 +189,11 @@ class Mirror:
             p[j] = 0.5 * (point[j] + c + R @ (point[i] - c))
         return n, p
 
-    def plane_rows(self, keys: Sequence[PlaneKey], normal: Array, point: Array, basis: Array) -> Array:
-        """Equality rows ``(r, 3 P)`` on the plane unknowns that keep symmetric planes symmetric.
+    def plane_rows(
+        self, keys: Sequence[PlaneKey], normal: Array, point: Array, basis: Array
+    ) -> sp.csr_matrix:
+        """Equality rows ``(r, 3 P)`` on the plane unknowns that keep symmetric planes symmetric
+        (sparse: at most six entries a row).
 
         Eq. (27): the image of plane j's increment is plane j*'s increment, for the two rotations
         ``t`` and the shift ``sigma`` of each plane (order t1, t2, sigma).  One orbit (a pair of
@@ -170,7 +205,7 @@ class Mirror:
         P = len(keys)
         js = np.flatnonzero(image >= np.arange(P))  # one plane per orbit present in the set
         if not len(js):
-            return np.zeros((0, 3 * P))
+            return sp.csr_matrix((0, 3 * P))
         i_, s = image[js], sign[js]
         A = s[:, None, None] * np.einsum("kai,ab,kbj->kij", basis[i_], R, basis[js])  # t_i = A t_j
         # offset about the centre o_k = n_k . (p_k - c), its increment sigma_k + (E_k t_k) . (p_k - c)
@@ -184,7 +219,8 @@ class Mirror:
         local[:, 2, 5] = -s
         local[:, 2, 3:5] = -s[:, None] * lever_j
         own = i_ == js  # a plane that is its own image: both column sets are the same
-        out = np.zeros((len(js), 3, 3 * P))
+        vals = np.zeros((len(js), 3, 6))
+        cols = np.zeros((len(js), 3, 6), dtype=int)
         keep = np.zeros((len(js), 3), dtype=bool)
         for subset, width in ((~own, 6), (own, 3)):
             if not subset.any():
@@ -192,12 +228,16 @@ class Mirror:
             block = local[subset] if width == 6 else local[subset, :, :3] + local[subset, :, 3:]
             _, sv, Vt = np.linalg.svd(block, full_matrices=False)
             base = np.stack([3 * i_[subset], 3 * js[subset]], axis=1) if width == 6 else 3 * js[subset, None]
-            cols = (base[:, :, None] + np.arange(3)).reshape(len(base), -1)
-            rows = np.zeros((len(base), Vt.shape[1], 3 * P))
-            np.put_along_axis(rows, np.broadcast_to(cols[:, None, :], (*Vt.shape[:2], width)), Vt, axis=2)
-            out[subset, : Vt.shape[1]] = rows
-            keep[subset, : Vt.shape[1]] = sv > _RANK_TOL * np.maximum(1.0, sv[:, :1])
-        return out[keep].reshape(-1, 3 * P)
+            c = (base[:, :, None] + np.arange(3)).reshape(len(base), -1)
+            nr = Vt.shape[1]
+            vals[subset, :nr, :width] = Vt
+            cols[subset, :nr, :width] = c[:, None, :]
+            keep[subset, :nr] = sv > _RANK_TOL * np.maximum(1.0, sv[:, :1])
+        vals, cols = vals[keep], cols[keep]  # (r, 6), in orbit order
+        rows = np.repeat(np.arange(len(vals)), 6)
+        out = sp.csr_matrix((vals.ravel(), (rows, cols.ravel())), shape=(len(vals), 3 * P))
+        out.eliminate_zeros()
+        return out
 
     def orbit_any(self, keys: Sequence[PlaneKey], flags: np.ndarray) -> np.ndarray:
         """``flags`` (P,) or-ed with their partners': a decision made for a whole orbit."""
