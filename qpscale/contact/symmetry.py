@@ -155,15 +155,27 @@ class Mirror:
         cache: dict = self.__dict__.setdefault("_images", {})  # a path asks for the same set often
         if keys in cache:
             return cache[keys]
-        index = {k: j for j, k in enumerate(keys)}
-        image = np.full(len(keys), -1, dtype=int)
-        sign = np.ones(len(keys))
-        for j, (a, pa, b, pb) in enumerate(keys):
-            ia, ib = int(self.perm[a]), int(self.perm[b])
-            ka, kb = int(self.pieces[a, pa]), int(self.pieces[b, pb])
-            key, s = ((ia, ka, ib, kb), 1.0) if ia < ib else ((ib, kb, ia, ka), -1.0)
-            image[j] = index.get(key, -1)
-            sign[j] = s
+        P = len(keys)
+        image = np.full(P, -1, dtype=int)
+        sign = np.ones(P)
+        if P:
+            k = np.asarray(keys, dtype=np.int64).reshape(P, 4)
+            ia, ib = self.perm[k[:, 0]], self.perm[k[:, 2]]
+            ka, kb = self.pieces[k[:, 0], k[:, 1]], self.pieces[k[:, 2], k[:, 3]]
+            swap = ~(ia < ib)  # as the tuples order them
+            img = np.where(swap[:, None], np.c_[ib, kb, ia, ka], np.c_[ia, ka, ib, kb]).astype(np.int64)
+            sign[swap] = -1.0
+            base = np.int64(max(len(self.perm), self.pieces.shape[1], 1))
+
+            def code(x: np.ndarray) -> np.ndarray:  # one integer per key, in the order of the tuples
+                return ((x[:, 0] * base + x[:, 1]) * base + x[:, 2]) * base + x[:, 3]
+
+            own = code(k)
+            order = np.argsort(own, kind="stable")
+            at = np.searchsorted(own[order], code(img))
+            found = at < P
+            found[found] = own[order][at[found]] == code(img)[found]
+            image[found] = order[at[found]]
         image.flags.writeable = sign.flags.writeable = False
         if len(cache) > 256:
             cache.clear()
@@ -179,14 +191,14 @@ class Mirror:
         image, sign = self.plane_images(keys)
         n, p = normal.copy(), point.copy()
         R, c = self.M3, self.centre
-        for j in np.flatnonzero(image >= 0):
-            i = image[j]
-            mean = 0.5 * (normal[j] + sign[i] * R @ normal[i])
-            size = np.linalg.norm(mean)
-            if size < 0.5:  # a plane and its image's image disagree by over 120 deg: keep it
-                continue
-            n[j] = mean / size
-            p[j] = 0.5 * (point[j] + c + R @ (point[i] - c))
+        js = np.flatnonzero(image >= 0)
+        i = image[js]
+        mean = 0.5 * (normal[js] + sign[i, None] * (normal[i] @ R.T))
+        size = np.linalg.norm(mean, axis=1)
+        ok = size >= 0.5  # else a plane and its image's image disagree by over 120 deg: keep it
+        js, i = js[ok], i[ok]
+        n[js] = mean[ok] / size[ok, None]
+        p[js] = 0.5 * (point[js] + c + (point[i] - c) @ R.T)
         return n, p
 
     def plane_rows(
