@@ -145,3 +145,21 @@ def test_sparse_antisymmetric_rows_span_the_reversed_modes(rings, point):
     Dd = D.toarray()
     assert np.abs(Dd @ Dd.T - np.eye(len(Dd))).max() < 1e-14
     assert np.abs(Dd.T @ Dd - ref @ ref.T).max() < 1e-14
+
+
+def test_plane_images_match_a_key_by_key_reference(corner):
+    # The vectorised look-up against the definition, one key at a time: the image of (a, pa, b, pb)
+    # is the pair of the images, reordered (with s = -1) when the images come in the other order.
+    _, patch, _, mirror = corner
+    keys = detect_contacts(patch, _symmetric_q(patch, mirror), mirror=mirror).planes.keys
+    index = {k: j for j, k in enumerate(keys)}
+    image, sign = mirror.plane_images(keys)
+    for j, (a, pa, b, pb) in enumerate(keys):
+        ia, ib = int(mirror.perm[a]), int(mirror.perm[b])
+        ka, kb = int(mirror.pieces[a, pa]), int(mirror.pieces[b, pb])
+        key, s = ((ia, ka, ib, kb), 1.0) if ia < ib else ((ib, kb, ia, ka), -1.0)
+        assert image[j] == index.get(key, -1)
+        assert sign[j] == s
+    # a key whose image is absent maps to -1
+    image, _ = mirror.plane_images(keys[:1])
+    assert image[0] in (-1, 0)
