@@ -16,6 +16,10 @@ its plane's three), so its 8x8 Hessian is formed in closed form for all rows at 
 rotation's second derivatives from Rodrigues' formula as series in |theta|^2 (eq. (7)), and
 scattered into H.  The finite-difference Hessian it replaced (one unknown at a time, ten times
 slower on the 5x5 patch) is kept as ``_hessian_fd``, the tests' reference.
+
+Above ``SPARSE_FROM`` unknowns the test runs without dense matrices (sec. 8): H and the
+constraint gradients as sparse matrices, and the smallest eigenvalue on the null space by
+shift-invert Lanczos on the KKT pencil, so memory stays linear in the patch.
 """
 
 from __future__ import annotations
