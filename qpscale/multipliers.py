@@ -67,9 +67,10 @@ SUPPORT_LP_OPTIONS = {"primal_feasibility_tolerance": 1e-9, "dual_feasibility_to
 MAX_CUTS = 200
 GAP = 1e-10
 # The dense reduced pieces (a d x d matrix per row and per kernel direction, d <= N) are used while
-# they fit in this many bytes (the 5x5 default path needs at most 83 MB) and N <= SPARSE_FROM;
+# they fit in this many bytes (the 5x5 default path needs at most 24 MB; products and their
+# symmetrisation hold three to four times as much at once) and N <= SPARSE_FROM;
 # above, the sparse evaluation of ``_sparse_uniform`` (memory linear in N).
-DENSE_BYTES = 1e8
+DENSE_BYTES = 3e7
 
 
 @dataclass(frozen=True)
