@@ -300,15 +300,17 @@ def puncture_memory_gb(n_scales: int, n_contact_pairs: int) -> float:
     """Estimated peak memory of a puncture run, GB (formulations/substrate.md sec. 11).
 
     The path itself is linear in the patch: the stiffness, the increment QPs, the stability probe
-    and the mirror map are sparse (stability.md sec. 8), 1 MB per scale as an upper bound (the
-    measured peaks grow by 0.6 MB per scale from 5x5 to 11x11), plus 0.3 GB for the interpreter
-    and the libraries.  One part is still dense: the final check of F_c (certify.solve_exact, by
-    DAQP's dense active-set method) holds P (N x N) and its rows (about 8 per contact pair, x N)
-    in the QP's N = 5 n_scales + 3 n_contact_pairs unknowns, with a copy of P: 8 (2 N^2 + 8 pairs N)
-    bytes.  That term dominates from the 13x13 patch on.
+    and the mirror map are sparse (stability.md sec. 8), 1 MB per scale as an upper bound (the path
+    peaked 0.07 GB above the interpreter on the 11x11 patch, 0.6 MB per scale), plus 0.3 GB for the
+    interpreter and the libraries.  One part is still dense: the final check of F_c
+    (certify.solve_exact, DAQP's dense active-set method) holds P (N x N) and its rows (about 8
+    per contact pair, x N) in the QP's N = 5 n_scales + 3 n_contact_pairs unknowns, with DAQP's
+    own copies and factors: 24 (N^2 + 8 pairs N) bytes (it raised the peak by 87 MB on the 9x9
+    patch, estimate 100 MB, and by 208 MB on the 11x11, estimate 234 MB).  That term dominates
+    from the 11x11 patch on.
     """
     N = _check_unknowns(n_scales, n_contact_pairs)
-    check = 8.0 * (2.0 * N * N + 8.0 * n_contact_pairs * N) / 1e9
+    check = 24.0 * (float(N) * N + 8.0 * n_contact_pairs * N) / 1e9
     return 0.3 + 1e-3 * n_scales + check
 
 
