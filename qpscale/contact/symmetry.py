@@ -24,6 +24,8 @@ from .placement import bodies_of
 
 # Vertices of a piece and of its image must coincide to this, in L.
 _MATCH_TOL = 1e-6
+# Scales whose pieces are matched to their images at once (bounds the (chunk, P, P, V, V) array).
+_CHUNK = 1024
 # Singular values of a plane orbit's equality rows below this are dependent rows, dropped.
 _RANK_TOL = 1e-9
 
@@ -88,17 +90,20 @@ def _piece_images(patch: Patch, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
     c0 = patch.centroids[0]
     placed = bodies.verts.copy()
     placed[..., :2] += (patch.centroids - c0)[:, None, None, :]
+    image = placed.copy()
+    image[..., :2] = image[..., :2] @ M.T
     out = np.empty((n, n_pieces), dtype=int)
-    for i in range(n):
-        for p in range(n_pieces):
-            image = placed[i, p].copy()
-            image[:, :2] = image[:, :2] @ M.T
-            # distance from each image vertex to the nearest vertex of each candidate piece
-            d = np.linalg.norm(image[None, :, None, :] - placed[perm[i]][:, None, :, :], axis=-1)
-            worst = d.min(axis=2).max(axis=1)
-            out[i, p] = int(np.argmin(worst))
-            if worst[out[i, p]] > _MATCH_TOL:
-                raise ValueError(f"piece {p} of scale {i} has no image under the reflection")
+    for lo in range(0, n, _CHUNK):  # scales in chunks: (chunk, P, P, V, V) distances at once
+        i = np.arange(lo, min(lo + _CHUNK, n))
+        target = placed[perm[i]]
+        # distance from each image vertex to the nearest vertex of each candidate piece
+        d = np.linalg.norm(image[i][:, :, None, :, None, :] - target[:, None, :, None, :, :], axis=-1)
+        worst = d.min(axis=4).max(axis=3)  # (chunk, P, P)
+        out[i] = np.argmin(worst, axis=2)
+        best = np.take_along_axis(worst, out[i][:, :, None], axis=2)[..., 0]
+        if np.any(best > _MATCH_TOL):
+            k, p = np.argwhere(best > _MATCH_TOL)[0]
+            raise ValueError(f"piece {p} of scale {i[k]} has no image under the reflection")
     return out
 
 
