@@ -352,10 +352,10 @@ def puncture_time_s(n_scales: int, n_contact_pairs: int, probe: bool = True) -> 
     150 sequential QPs at 4 ms per scale each (PIQP: measured 2.5-3.4 ms per scale per QP in wall
     time on the loaded development machine, 58-96 QPs, 5x5 to 11x11); with the stability probe 80
     states of the sparse test at 0.2 ms per unknown (measured 55 ms at 830 unknowns); and the final
-    check of F_c, DAQP's dense active-set solve, up to 1e-8 N^3 s (measured 6.7 s, 9.5 s and 125 s
-    for N = 1221, 1865 and 2645: 1.5e-9 to 6.8e-9 N^3), N = 5 n_scales + 3 n_contact_pairs.
-    Measured runs took 3.6 s, 14 s, 25 s, 36 s and 194 s (5x5 to 13x13, load 4-5 on two cores)
-    against estimates of 21 s, 44 s, 86 s, 167 s and 329 s.
+    check of F_c, DAQP's dense active-set solve, up to 1e-8 N^3 s (measured 3.1-6.7 s, 9.5-20 s and
+    114-125 s for N = 1221, 1865 and 2645: 1.5e-9 to 6.8e-9 N^3), N = 5 n_scales + 3 n_contact_pairs.
+    Measured runs took up to 3.6 s, 14 s, 28 s, 49 s and 219 s (5x5 to 13x13, load 4-7 on two
+    cores) against estimates of 21 s, 44 s, 86 s, 167 s and 329 s.
     """
     N = _check_unknowns(n_scales, n_contact_pairs)
     qp = 150 * 0.004 * n_scales

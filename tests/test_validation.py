@@ -255,12 +255,13 @@ def test_memory_limit_from_the_environment(no_work, monkeypatch):
 
 def test_time_estimate_bounds_the_measured_runs_and_refuses_long_scenes(no_work, monkeypatch):
     # Measured corner-loaded square arrays (probe on, PIQP, wall time on two shared cores under a
-    # load of 4-5; formulations/substrate.md sec. 11): 5x5 3.6 s, 7x7 14 s, 9x9 25 s, 11x11 36 s,
-    # 13x13 194 s.  The estimate must not fall below a measurement (it refuses runs, it must not let
-    # a long one through on a machine like this one) and stays within a factor 10 of it.
+    # load of 4-7; formulations/substrate.md sec. 11; the slower of two runs): 5x5 3.6 s, 7x7 14 s,
+    # 9x9 28 s, 11x11 49 s, 13x13 219 s.  The estimate must not fall below a measurement (it
+    # refuses runs, it must not let a long one through on a machine like this one) and stays
+    # within a factor 10 of it.
     from qpscale.tiling import Design
 
-    for rings, measured in ((2, 3.6), (3, 14.0), (4, 25.0), (5, 36.0), (6, 194.0)):
+    for rings, measured in ((2, 3.6), (3, 14.0), (4, 28.0), (5, 49.0), (6, 219.0)):
         patch = Design(rings=rings).patch()
         est = v.puncture_time_s(patch.n_scales, len(patch.contact_pairs))
         assert measured <= est <= 10 * measured, (rings, est)
