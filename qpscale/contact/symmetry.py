@@ -168,7 +168,8 @@ class Mirror:
             ia, ib = self.perm[k[:, 0]], self.perm[k[:, 2]]
             ka, kb = self.pieces[k[:, 0], k[:, 1]], self.pieces[k[:, 2], k[:, 3]]
             swap = ~(ia < ib)  # as the tuples order them
-            img = np.where(swap[:, None], np.c_[ib, kb, ia, ka], np.c_[ia, ka, ib, kb]).astype(np.int64)
+            swapped, kept = np.stack([ib, kb, ia, ka], axis=1), np.stack([ia, ka, ib, kb], axis=1)
+            img = np.where(swap[:, None], swapped, kept).astype(np.int64)
             sign[swap] = -1.0
             base = np.int64(max(len(self.perm), self.pieces.shape[1], 1))
 
@@ -245,10 +246,10 @@ class Mirror:
             block = local[subset] if width == 6 else local[subset, :, :3] + local[subset, :, 3:]
             _, sv, Vt = np.linalg.svd(block, full_matrices=False)
             base = np.stack([3 * i_[subset], 3 * js[subset]], axis=1) if width == 6 else 3 * js[subset, None]
-            c = (base[:, :, None] + np.arange(3)).reshape(len(base), -1)
+            columns = (base[:, :, None] + np.arange(3)).reshape(len(base), -1)
             nr = Vt.shape[1]
             vals[subset, :nr, :width] = Vt
-            cols[subset, :nr, :width] = c[:, None, :]
+            cols[subset, :nr, :width] = columns[:, None, :]
             keep[subset, :nr] = sv > _RANK_TOL * np.maximum(1.0, sv[:, :1])
         vals, cols = vals[keep], cols[keep]  # (r, 6), in orbit order
         rows = np.repeat(np.arange(len(vals)), 6)
