@@ -455,19 +455,26 @@ def smallest_on_null_space(Ks: sp.csc_matrix, G: sp.csc_matrix, C: sp.csr_matrix
     """
     H = (Ks + G).tocsc()
     N = H.shape[0]
-    sigma = min(_gershgorin_floor(G), 0.0) - SHIFT_MARGIN
-    v0 = np.random.default_rng(0).standard_normal(N)
-    for tolerance, step in ((LANCZOS_ROUGH, SHIFT_STEP), (LANCZOS_TIGHT, 0.0)):
+    floor = min(_gershgorin_floor(G), 0.0) - SHIFT_MARGIN
+    start = np.random.default_rng(0).standard_normal(N)
+
+    def top(sigma: float, v0: Array, tolerance: float) -> tuple[float, Array]:
         try:
             theta, V = spla.eigsh(_shift_inverse(H, C, sigma), k=1, which="LA", v0=v0, tol=tolerance)
         except spla.ArpackNoConvergence as exc:
             raise SolverFailure("stability", "Lanczos did not converge", detail="second variation") from exc
         if not theta[0] > 0:  # the operator is positive semidefinite: round-off only
             raise SolverFailure("stability", "shift above the spectrum", detail="second variation")
-        v0 = V[:, 0]
-        mu = sigma + 1.0 / float(theta[0])
-        sigma += step * (mu - sigma)
-    return mu, v0 / np.linalg.norm(v0)
+        return sigma + 1.0 / float(theta[0]), V[:, 0]
+
+    rough, v = top(floor, start, LANCZOS_ROUGH)
+    sigma = floor + SHIFT_STEP * (rough - floor)
+    mu, v = top(sigma, v, LANCZOS_TIGHT)
+    # A Ritz value of the first run bounds mu_min from above; a larger answer means the second shift
+    # passed mu_min (the first run had not found the top): then the tight run from the safe shift.
+    if mu > rough + 1e-9 * (rough - floor):
+        mu, v = top(floor, start, LANCZOS_TIGHT)
+    return mu, v / np.linalg.norm(v)
 
 
 def _sparse_reduced_minimum(
