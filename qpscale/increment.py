@@ -209,23 +209,26 @@ def _with_mirror(qp: IncrementQP, mirror: Mirror, q: np.ndarray, cs: ContactSet 
     """
     D = mirror.dof_rows
     r, nq = D.shape
-    rows = np.zeros((0, qp.n - nq))
+    rows = sp.csr_matrix((0, qp.n - nq))
     if cs is not None and cs.planes is not None and cs.planes.count:
         planes = cs.planes
-        rows = mirror.plane_rows(planes.keys, planes.normal, planes.point, planes.basis).reshape(
-            -1, qp.n - nq
-        )
+        rows = mirror.plane_rows(planes.keys, planes.normal, planes.point, planes.basis)
     G, h, A, b = qp.rows()
-    # One dense block (a few hundred rows), converted once: stacking sparse pieces per iteration
-    # cost more than the rows themselves.
-    M = np.zeros((A.shape[0] + r + len(rows), qp.n))
-    M[: A.shape[0]] = A.toarray()
-    M[A.shape[0] : A.shape[0] + r, :nq] = D
-    M[A.shape[0] + r :, nq:] = rows
-    labels = [f"sym{i}" for i in range(r)] + [f"symplane{i}" for i in range(len(rows))]
-    rhs = np.concatenate([b, -D @ q.reshape(-1), np.zeros(len(rows))])
+    # Both sets of rows are sparse (at most ten entries a row): stacked as triplets, so the
+    # equality block grows linearly with the patch.
+    Ac, Dc, Rc = sp.coo_matrix(A), sp.coo_matrix(D), sp.coo_matrix(rows)
+    top = A.shape[0]
+    M = sp.csc_matrix(
+        (
+            np.r_[Ac.data, Dc.data, Rc.data],
+            (np.r_[Ac.row, top + Dc.row, top + r + Rc.row], np.r_[Ac.col, Dc.col, nq + Rc.col]),
+        ),
+        shape=(top + r + Rc.shape[0], qp.n),
+    )
+    labels = [f"sym{i}" for i in range(r)] + [f"symplane{i}" for i in range(Rc.shape[0])]
+    rhs = np.concatenate([b, -D @ q.reshape(-1), np.zeros(Rc.shape[0])])
     return IncrementQP.assembled(
-        qp.P, qp.q, G, h, sp.csc_matrix(M), rhs, tuple(qp.row_labels_A or ("load",)) + tuple(labels)
+        qp.P, qp.q, G, h, M, rhs, tuple(qp.row_labels_A or ("load",)) + tuple(labels)
     )
 
 

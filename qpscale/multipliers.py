@@ -18,6 +18,7 @@ point of the set gives, so a state the backend's multipliers call stable is stab
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -28,13 +29,20 @@ from .errors import SolverFailure
 from .increment import Equilibrium, LoadPoint
 from .qp import IncrementQP
 from .stability import (
+    SPARSE_FROM,
     Stability,
     _hessian,
+    _Lifted,
     _lifted,
     _null_space,
     _row_hessians,
+    constraints,
     dof_mode,
+    geometric_matrix,
+    geometric_terms,
+    padded,
     rotated_point_derivatives,
+    smallest_on_null_space,
 )
 from .tiling import Patch
 
@@ -58,6 +66,11 @@ BOX = 10.0
 SUPPORT_LP_OPTIONS = {"primal_feasibility_tolerance": 1e-9, "dual_feasibility_tolerance": 1e-9}
 MAX_CUTS = 200
 GAP = 1e-10
+# The dense reduced pieces (a d x d matrix per row and per kernel direction, d <= N) are used while
+# they fit in this many bytes (the 5x5 default path needs at most 24 MB; products and their
+# symmetrisation hold three to four times as much at once) and N <= SPARSE_FROM;
+# above, the sparse evaluation of ``_sparse_uniform`` (memory linear in N).
+DENSE_BYTES = 3e7
 
 
 @dataclass(frozen=True)
@@ -160,15 +173,27 @@ def _maximise_smallest_eigenvalue(
     ``GAP``: an unstable state's mode is then the maximiser's (the direction the path pushes
     along), not that of wherever the bound first fell below ``-tol``; the best ``u`` found is
     returned."""
-    nu = len(dirs)
-    if nu == 0:  # one member: nothing to choose
-        return np.zeros(0)
 
     def value(u: np.ndarray) -> tuple[float, np.ndarray]:
         vals, vecs = np.linalg.eigh(base + np.tensordot(u, dirs, axes=1))
         v = vecs[:, 0]
         return float(vals[0]), (dirs @ v) @ v
 
+    return _cutting_planes(value, len(dirs), lam0, N, bound, tol)
+
+
+def _cutting_planes(
+    value: Callable[[np.ndarray], tuple[float, np.ndarray]],
+    nu: int,
+    lam0: np.ndarray,
+    N: np.ndarray,
+    bound: float,
+    tol: float,
+) -> np.ndarray:
+    """Kelley's cutting planes of :func:`_maximise_smallest_eigenvalue` for any concave ``value``
+    returning ``(mu(u), subgradient)``."""
+    if nu == 0:  # one member: nothing to choose
+        return np.zeros(0)
     u = np.zeros(nu)
     best, g = value(u)
     if best > -tol:
@@ -219,6 +244,9 @@ def uniform_second_variation(
             "stability", "multiplier rows are not plane rows", detail="uniform second variation"
         )
     n, N = patch.n_scales, lifted.size
+    bound = BOX * max(force_scale, float(np.max(ms.lam, initial=0.0)))  # the support LPs' box
+    if N > SPARSE_FROM or 8.0 * N * N * (len(ms.rows) + ms.kernel.shape[1] + 4) > DENSE_BYTES:
+        return _sparse_uniform(patch, K, eq, load, lifted, ms, bound, tol)
     C = np.vstack([lifted.jacobian(lifted.z0), np.r_[load.gradient(eq.q), np.zeros(N - 5 * n)]])
     Z = _null_space(C)
     scale = float(np.max(K.diagonal()))
@@ -248,7 +276,6 @@ def uniform_second_variation(
     ker = ms.kernel
     base = M0 - np.tensordot(ms.lam, Mi, axes=1) + ms.F * Mw
     dirs = -np.tensordot(ker[:k].T, Mi, axes=1) + ker[k][:, None, None] * Mw
-    bound = BOX * max(force_scale, float(np.max(ms.lam, initial=0.0)))  # the support LPs' box
     u = _maximise_smallest_eigenvalue(base, dirs, ms.lam, ker[:k], bound, tol)
     w = np.r_[ms.lam, ms.F] + ker @ u
     lam, F = w[:k], w[k]
@@ -256,3 +283,39 @@ def uniform_second_variation(
     vals, vecs = np.linalg.eigh(0.5 * (Mstar + Mstar.T))
     mu = float(vals[0])
     return Stability(mu, mu > -tol, dof_mode(Z @ vecs[:, 0], n), k)
+
+
+def _sparse_uniform(
+    patch: Patch,
+    K,
+    eq: Equilibrium,
+    load: LoadPoint,
+    lifted: _Lifted,
+    ms: MultiplierSet,
+    bound: float,
+    tol: float,
+) -> Stability:
+    """:func:`uniform_second_variation` without dense matrices: each member's mu(u) by the sparse
+    test (``stability.smallest_on_null_space``) and its subgradient from the eigenvector x in the
+    unknowns, ``-sum_i ker_ij x_i' h_i x_i + ker_kj x_w' h_w x_w`` (row i's eight unknowns x_i)."""
+    n, N = patch.n_scales, lifted.size
+    scale = float(np.max(K.diagonal()))
+    terms = geometric_terms(lifted)
+    h, idx, hw, ij = terms
+    Ks = padded(K, N) / scale
+    C = constraints(lifted, load, eq.q)
+    k, ker = len(ms.rows), ms.kernel
+
+    def evaluate(u: np.ndarray) -> tuple[float, np.ndarray]:
+        w = np.r_[ms.lam, ms.F] + ker @ u
+        return smallest_on_null_space(Ks, geometric_matrix(N, 5 * n, terms, w[:k], float(w[k])) / scale, C)
+
+    def value(u: np.ndarray) -> tuple[float, np.ndarray]:
+        mu, x = evaluate(u)
+        xr = x[idx]
+        rows = np.einsum("ma,mab,mb->m", xr, h, xr) / scale
+        return mu, -ker[:k].T @ rows + ker[k] * float(x[ij] @ hw @ x[ij]) / scale
+
+    u = _cutting_planes(value, ker.shape[1], ms.lam, ker[:k], bound, tol)
+    mu, x = evaluate(u)
+    return Stability(mu, mu > -tol, dof_mode(x, n), k)

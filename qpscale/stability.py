@@ -16,6 +16,10 @@ its plane's three), so its 8x8 Hessian is formed in closed form for all rows at 
 rotation's second derivatives from Rodrigues' formula as series in |theta|^2 (eq. (7)), and
 scattered into H.  The finite-difference Hessian it replaced (one unknown at a time, ten times
 slower on the 5x5 patch) is kept as ``_hessian_fd``, the tests' reference.
+
+Above ``SPARSE_FROM`` unknowns the test runs without dense matrices (sec. 8): H and the
+constraint gradients as sparse matrices, and the smallest eigenvalue on the null space by
+shift-invert Lanczos on the KKT pencil, so memory stays linear in the patch.
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ from math import factorial
 import numpy as np
 import numpy.polynomial.polynomial as P
 import scipy.linalg as la
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from .contact import ContactSet
 from .contact.planes import tangent_basis
@@ -44,6 +50,19 @@ FD_STEP = 1e-6
 # zero-curvature direction that moves no scale; this keeps it out of the spectrum.
 PLANE_WEIGHT = 1e-3
 
+# Above this many unknowns N (5 per scale, 3 per plane with an active row) the test is sparse
+# (sec. 8); below it the dense null space and eigensolver of sec. 3 (exact, and faster there: on
+# the default scene's paths 7x7 N <= 416, dense 5.6 ms a state, sparse 7.1 ms; 9x9 N <= 633, 22
+# and 13 ms; 11x11 N <= 830, 153 and 55 ms).  The 3x3 and 5x5 patches stay dense.
+SPARSE_FROM = 450
+# The sparse test's KKT regularisation (in units of max K_ii, rows of C of unit length), the margin
+# of its first shift below the Gershgorin bound, the fraction of the way from there up to the
+# first estimate of mu_min that the second shift goes, and the Lanczos tolerances of the two runs.
+KKT_REGULARISATION = 1e-14
+SHIFT_MARGIN = 1e-3
+SHIFT_STEP = 0.9
+LANCZOS_ROUGH = 1e-3
+LANCZOS_TIGHT = 1e-12
 
 # Taylor coefficients, in b = |theta|^2, of cos|theta|, sin|theta|/|theta| and (1 - cos|theta|)/|theta|^2
 # (the three scalars of Rodrigues' formula, eq. (7)): all three are entire in b, so the series and
@@ -173,8 +192,9 @@ class _Lifted:
         self.size = 5 * self.n + 3 * len(keys)
         self.z0 = np.r_[q.ravel(), np.zeros(3 * len(keys))]
 
-    def jacobian(self, z: Array, rows: np.ndarray | None = None) -> Array:
-        """Gradients (m, size) of the active gaps at z, eqs. (1)-(2); ``rows`` picks a subset."""
+    def gradient_entries(self, z: Array, rows: np.ndarray | None = None) -> tuple[Array, np.ndarray]:
+        """Non-zero entries ``(m, 8)`` of the active gaps' gradients at z (eqs. (1)-(2)) and their
+        columns ``(m, 8)``: each row's scale DOFs (5) and plane unknowns (3)."""
         k = np.arange(len(self.rows)) if rows is None else rows
         q = z[: 5 * self.n].reshape(self.n, 5)
         th = z[5 * self.n :].reshape(-1, 3)
@@ -185,18 +205,28 @@ class _Lifted:
         v = self.n0[j] + np.einsum("mij,mj->mi", self.T0[j], th[j, :2])
         length = np.linalg.norm(v, axis=1)
         n = v / length[:, None]
-        out = np.zeros((len(k), self.size))
-        cols = 5 * s[:, None] + np.arange(5)
         dof = np.hstack([n, np.einsum("mji,mj->mi", T, np.cross(x - c, n))])
-        np.put_along_axis(out, cols, sigma[:, None] * dof, axis=1)
         p = self.p0[j] + th[j, 2:3] * self.n0[j]
         proj = np.eye(3)[None] - np.einsum("mi,mj->mij", n, n)
         dn = np.einsum("mij,mjk->mik", proj, self.T0[j]) / length[:, None, None]
         dt = np.einsum("mk,mki->mi", x - p, dn)
-        pc = 5 * self.n + 3 * j[:, None] + np.arange(3)
         extra = np.hstack([dt, -np.einsum("mk,mk->m", n, self.n0[j])[:, None]])
-        np.put_along_axis(out, pc, sigma[:, None] * extra, axis=1)
+        cols = np.hstack([5 * s[:, None] + np.arange(5), 5 * self.n + 3 * j[:, None] + np.arange(3)])
+        return sigma[:, None] * np.hstack([dof, extra]), cols
+
+    def jacobian(self, z: Array, rows: np.ndarray | None = None) -> Array:
+        """Gradients (m, size) of the active gaps at z, eqs. (1)-(2); ``rows`` picks a subset."""
+        vals, cols = self.gradient_entries(z, rows)
+        out = np.zeros((len(vals), self.size))
+        np.put_along_axis(out, cols, vals, axis=1)
         return out
+
+    def sparse_jacobian(self, z: Array) -> sp.csr_matrix:
+        """:meth:`jacobian` of every active row, sparse: eight entries a row."""
+        vals, cols = self.gradient_entries(z)
+        m = len(vals)
+        indptr = 8 * np.arange(m + 1)
+        return sp.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(m, self.size))
 
     def force_gradient(self, z: Array, rows: np.ndarray | None = None, load: bool = True) -> Array:
         """sum_k lam_k grad g_k - F grad w at z: the constraint part of the Lagrangian's gradient
@@ -291,6 +321,49 @@ def _hessian(lifted: _Lifted, K, z: Array | None = None) -> Array:
     return 0.5 * (H + H.T)
 
 
+def geometric_terms(lifted: _Lifted, z: Array | None = None) -> tuple[Array, np.ndarray, Array, np.ndarray]:
+    """The pieces of H that depend on the forces (eqs. (5)-(6)) at z (default: the state): every
+    active row's 8 x 8 gap Hessian ``h (m, 8, 8)`` and its unknowns ``idx (m, 8)``, and the load
+    point's ``hw (2, 2)`` on the loaded scale's rotations ``ij (2,)``;
+    H = K + PLANE_WEIGHT I_theta - sum_v lam_v h_v + F hw."""
+    z = lifted.z0 if z is None else z
+    load = lifted.load
+    q = z[: 5 * lifted.n].reshape(lifted.n, 5)
+    s = np.r_[lifted.scale, load.scale]
+    r, dr, ddr = rotated_point_derivatives(q[s, 3:5], np.vstack([lifted.X, np.reshape(load.X, (1, 3))]))
+    if len(lifted.rows):
+        h, idx = _row_hessians(lifted, z, r[:-1], dr[:-1], ddr[:-1])
+    else:
+        h, idx = np.zeros((0, 8, 8)), np.zeros((0, 8), dtype=int)
+    return h, idx, ddr[-1, :, :, 2], 5 * load.scale + np.arange(3, 5)
+
+
+def geometric_matrix(
+    N: int, nq: int, terms: tuple[Array, np.ndarray, Array, np.ndarray], lam: Array, F: float
+) -> sp.csc_matrix:
+    """H - K (sparse, N x N, symmetric) for the forces ``lam`` (one per row of ``terms``) and ``F``:
+    the plane weight and the geometric terms of :func:`geometric_terms`."""
+    h, idx, hw, ij = terms
+    planes = np.arange(nq, N)
+    i = np.concatenate([planes, np.repeat(ij, 2), np.broadcast_to(idx[:, :, None], h.shape).ravel()])
+    j = np.concatenate([planes, np.tile(ij, 2), np.broadcast_to(idx[:, None, :], h.shape).ravel()])
+    v = np.concatenate([np.full(N - nq, PLANE_WEIGHT), (F * hw).ravel(), (-lam[:, None, None] * h).ravel()])
+    G = sp.csc_matrix((v, (i, j)), shape=(N, N))
+    return (0.5 * (G + G.T)).tocsc()
+
+
+def padded(K, N: int) -> sp.csc_matrix:
+    """K (5n x 5n) as the N x N matrix of every unknown (zero on the plane unknowns)."""
+    Kc = sp.coo_matrix(K)
+    return sp.csc_matrix((Kc.data, (Kc.row, Kc.col)), shape=(N, N))
+
+
+def _sparse_hessian(lifted: _Lifted, K, z: Array | None = None) -> sp.csc_matrix:
+    """:func:`_hessian`, sparse: the same terms summed as triplets, never an N x N array."""
+    G = geometric_matrix(lifted.size, 5 * lifted.n, geometric_terms(lifted, z), lifted.lam, lifted.F)
+    return (padded(K, lifted.size) + G).tocsc()
+
+
 def _hessian_fd(lifted: _Lifted, K) -> Array:
     """Reference H at the state: central differences (step FD_STEP) of the exact constraint
     gradients, one unknown at a time.  Kept to test :func:`_hessian` against (the loop costs one
@@ -326,6 +399,95 @@ def _reduced_minimum(
     return Stability(lo, lo > -tol, dof_mode(Z @ V[:, 0], n), len(lifted.rows))
 
 
+def constraints(lifted: _Lifted, load: LoadPoint, q: Array) -> sp.csr_matrix:
+    """C of eq. (4), sparse: the strongly active gaps' gradients and the load's, each row scaled to
+    unit length (a row's scale does not change the null space)."""
+    a = load.gradient(q)
+    nz = np.flatnonzero(a)
+    w = sp.csr_matrix((a[nz], nz, [0, len(nz)]), shape=(1, lifted.size))
+    C = sp.vstack([lifted.sparse_jacobian(lifted.z0), w]).tocsr()
+    norms = np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel())
+    return sp.diags(1.0 / np.maximum(norms, np.finfo(float).tiny)) @ C
+
+
+def _shift_inverse(H: sp.csc_matrix, C: sp.csr_matrix, sigma: float) -> spla.LinearOperator:
+    """x = Z (Z'(H - sigma I)Z)^-1 Z' b by one sparse LU of the KKT matrix of the pencil (eq. (9)),
+    [H - sigma I, C'; C, -eps I] [x; y] = [b; 0].  ``eps`` (KKT_REGULARISATION) lets dependent
+    rows of C through; it softens a constraint only along singular values of C below about its
+    square root (1e-7)."""
+    N, m = H.shape[0], C.shape[0]
+    kkt = sp.bmat(
+        [[H - sigma * sp.identity(N, format="csc"), C.T], [C, -KKT_REGULARISATION * sp.identity(m)]],
+        format="csc",
+    )
+    try:
+        lu = spla.splu(kkt, permc_spec="MMD_AT_PLUS_A")
+    except RuntimeError as exc:  # an exactly singular pencil: sigma is an eigenvalue
+        failure = f"KKT factorisation failed ({exc})"
+        raise SolverFailure("stability", failure, detail="second variation") from exc
+    rhs = np.zeros(N + m)
+
+    def apply(b: Array) -> Array:
+        rhs[:N] = np.ravel(b)
+        return lu.solve(rhs)[:N]
+
+    return spla.LinearOperator((N, N), matvec=apply, dtype=float)
+
+
+def _gershgorin_floor(G: sp.spmatrix) -> float:
+    """A lower bound of the smallest eigenvalue of the symmetric ``G`` (Gershgorin's discs)."""
+    G = sp.csr_matrix(G)
+    d = G.diagonal()
+    off = np.asarray(abs(G).sum(axis=1)).ravel() - np.abs(d)
+    return float(np.min(d - off, initial=0.0))
+
+
+def smallest_on_null_space(Ks: sp.csc_matrix, G: sp.csc_matrix, C: sp.csr_matrix) -> tuple[float, Array]:
+    """Smallest eigenvalue of Z'(Ks + G)Z, Z an orthonormal basis of ker C, and its eigenvector
+    (unit length, in the unknowns), without forming Z or any dense N x N array (sec. 8).
+
+    ``Ks`` is positive semidefinite (the scaled stiffness), so Gershgorin's bound of ``G`` is
+    below every eigenvalue of Ks + G and hence of Z'(Ks + G)Z (interlacing): the first shift,
+    SHIFT_MARGIN below it, is below mu_min, and shift-invert Lanczos there (every solve one
+    sparse LU of the KKT matrix) converges to mu_min.  A loose run estimates it; the second
+    shift, SHIFT_STEP of the way up to the estimate, makes mu_min dominant and a tight run
+    converges in a few steps.  The start vector is fixed: one state, one answer.
+    """
+    H = (Ks + G).tocsc()
+    N = H.shape[0]
+    floor = min(_gershgorin_floor(G), 0.0) - SHIFT_MARGIN
+    start = np.random.default_rng(0).standard_normal(N)
+
+    def top(sigma: float, v0: Array, tolerance: float) -> tuple[float, Array]:
+        try:
+            theta, V = spla.eigsh(_shift_inverse(H, C, sigma), k=1, which="LA", v0=v0, tol=tolerance)
+        except spla.ArpackNoConvergence as exc:
+            raise SolverFailure("stability", "Lanczos did not converge", detail="second variation") from exc
+        if not theta[0] > 0:  # the operator is positive semidefinite: round-off only
+            raise SolverFailure("stability", "shift above the spectrum", detail="second variation")
+        return sigma + 1.0 / float(theta[0]), V[:, 0]
+
+    rough, v = top(floor, start, LANCZOS_ROUGH)
+    sigma = floor + SHIFT_STEP * (rough - floor)
+    mu, v = top(sigma, v, LANCZOS_TIGHT)
+    # A Ritz value of the first run bounds mu_min from above; a larger answer means the second shift
+    # passed mu_min (the first run had not found the top): then the tight run from the safe shift.
+    if mu > rough + 1e-9 * (rough - floor):
+        mu, v = top(floor, start, LANCZOS_TIGHT)
+    return mu, v / np.linalg.norm(v)
+
+
+def _sparse_reduced_minimum(
+    patch: Patch, K, eq: Equilibrium, load: LoadPoint, tol: float, lifted: _Lifted
+) -> Stability:
+    """:func:`_reduced_minimum` without dense matrices (sec. 8)."""
+    n, N = patch.n_scales, lifted.size
+    scale = float(np.max(K.diagonal()))
+    G = geometric_matrix(N, 5 * n, geometric_terms(lifted), lifted.lam, lifted.F)
+    mu, x = smallest_on_null_space(padded(K, N) / scale, G / scale, constraints(lifted, load, eq.q))
+    return Stability(mu, mu > -tol, dof_mode(x, n), len(lifted.rows))
+
+
 def dof_mode(v: Array, n: int) -> Array:
     """The DOF part ``(n, 5)`` of an eigenvector ``v`` of the reduced Hessian (sec. 5): max-norm
     one, its largest entry positive."""
@@ -356,6 +518,8 @@ def second_variation(patch: Patch, K, eq: Equilibrium, load: LoadPoint, tol: flo
         Eigenvalues above ``-tol`` (relative to the largest diagonal of K) count as stable.
     """
     lifted = _lifted(patch, eq, load)
+    if lifted.size > SPARSE_FROM:
+        return _sparse_reduced_minimum(patch, K, eq, load, tol, lifted)
     return _reduced_minimum(patch, K, eq, load, tol, _hessian(lifted, K), lifted)
 
 

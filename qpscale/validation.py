@@ -290,16 +290,28 @@ def max_memory_gb(value: object = None) -> float:
     return _limit("max_memory_gb", value, MEMORY_ENV, DEFAULT_MAX_MEMORY_GB, "GB", "GB")
 
 
-def puncture_memory_gb(n_scales: int, n_contact_pairs: int) -> float:
-    """Estimated peak memory of a puncture run, GB.
+def _check_unknowns(n_scales: int, n_contact_pairs: int) -> int:
+    """Unknowns of the increment QP at the failure state: five per scale, three per separating plane
+    (every contact pair has one there: 1221 = 5 x 81 + 3 x 272 on the 9x9 square array)."""
+    return 5 * n_scales + 3 * n_contact_pairs
 
-    The second variation (stability probe) and the mirror map are dense in the unknowns
-    N = 5 n_scales + 3 n_contact_pairs (the scales' DOFs and the separating planes): four N x N
-    float64 arrays (H, the projected Hessian, its eigenvectors, LAPACK workspace), plus 0.3 GB
-    for the interpreter and the libraries.
+
+def puncture_memory_gb(n_scales: int, n_contact_pairs: int) -> float:
+    """Estimated peak memory of a puncture run, GB (formulations/substrate.md sec. 11).
+
+    The path itself is linear in the patch: the stiffness, the increment QPs, the stability probe
+    and the mirror map are sparse (stability.md sec. 8), 1 MB per scale as an upper bound (the path
+    peaked 0.07 GB above the interpreter on the 11x11 patch, 0.6 MB per scale), plus 0.3 GB for the
+    interpreter and the libraries.  One part is still dense: the final check of F_c
+    (certify.solve_exact, DAQP's dense active-set method) holds P (N x N) and its rows (about 8
+    per contact pair, x N) in the QP's N = 5 n_scales + 3 n_contact_pairs unknowns, with DAQP's
+    own copies and factors: 24 (N^2 + 8 pairs N) bytes (it raised the peak by 87 MB on the 9x9
+    patch, estimate 100 MB, and by 208 MB on the 11x11, estimate 234 MB).  That term dominates
+    from the 11x11 patch on.
     """
-    N = 5 * n_scales + 3 * n_contact_pairs
-    return 4.0 * N * N * 8 / 1e9 + 0.3
+    N = _check_unknowns(n_scales, n_contact_pairs)
+    check = 24.0 * (float(N) * N + 8.0 * n_contact_pairs * N) / 1e9
+    return 0.3 + 1e-3 * n_scales + check
 
 
 def flexure_memory_gb(mesh_h: float, nz: int, length: float = 10.0, width: float = 10.0) -> float:
@@ -335,17 +347,19 @@ def max_minutes(value: object = None) -> float:
 
 
 def puncture_time_s(n_scales: int, n_contact_pairs: int, probe: bool = True) -> float:
-    """An upper estimate of a puncture run's wall time on one core, seconds.
+    """An upper estimate of a puncture run's wall time on one core, seconds (substrate.md sec. 11).
 
-    300 sequential QPs at 6 ms per scale each (measured 3.4-5.3 ms per scale per QP on the 5x5, 7x7
-    and 9x9 square arrays, which took 104-260 QPs), plus with the stability probe 80 states of a
-    dense eigen-decomposition and two products, 3 N^3 flops at 4e9 flop/s (numpy's eigh measured
-    2.4-4.4 GFLOP/s on one core), N = 5 n_scales + 3 n_contact_pairs.  Measured runs took 8 s,
-    69 s and 68 s against estimates of 47 s, 110 s and 255 s.
+    150 sequential QPs at 4 ms per scale each (PIQP: measured 2.5-3.4 ms per scale per QP in wall
+    time on the loaded development machine, 58-96 QPs, 5x5 to 11x11); with the stability probe 80
+    states of the sparse test at 0.2 ms per unknown (measured 55 ms at 830 unknowns); and the final
+    check of F_c, DAQP's dense active-set solve, up to 1e-8 N^3 s (measured 3.1-6.7 s, 9.5-20 s and
+    114-125 s for N = 1221, 1865 and 2645: 1.5e-9 to 6.8e-9 N^3), N = 5 n_scales + 3 n_contact_pairs.
+    Measured runs took up to 3.6 s, 14 s, 28 s, 49 s and 219 s (5x5 to 13x13, load 4-7 on two
+    cores) against estimates of 21 s, 44 s, 86 s, 167 s and 329 s.
     """
-    N = 5 * n_scales + 3 * n_contact_pairs
-    qp = 300 * 0.006 * n_scales
-    return qp + (80 * 3.0 * N**3 / 4e9 if probe else 0.0)
+    N = _check_unknowns(n_scales, n_contact_pairs)
+    qp = 150 * 0.004 * n_scales
+    return qp + (80 * 2e-4 * N if probe else 0.0) + 1e-8 * float(N) ** 3
 
 
 def flexure_time_s(mesh_h: float, nz: int, length: float = 10.0, width: float = 10.0) -> float:

@@ -230,8 +230,8 @@ def test_cost_study_runs_each_patch_in_its_own_process():
     assert [r["n_scales"] for r in rows] == [1, 9]
     for r in rows:
         assert r["Fc_star"] == pytest.approx(puncture(rings=r["rings"], probe=False).Fc_star, rel=1e-12)
-        assert 0.0 < r["peak_gb"] < 4.0 and 0.0 < r["run_s"] <= r["wall_s"]
-    assert np.isfinite(study["time_exponent"]) and np.isfinite(study["memory_exponent"])
+        assert 0.0 < r["peak_gb"] < 4.0 and 0.0 < r["run_s"] <= r["wall_s"] and r["cpu_s"] > 0.0
+    assert all(np.isfinite(study[k]) for k in ("time_exponent", "cpu_exponent", "memory_exponent"))
     assert fitted_exponent([1.0, 10.0, 100.0], [3.0, 300.0, 30000.0]) == pytest.approx(2.0)
 
 

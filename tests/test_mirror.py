@@ -69,7 +69,7 @@ def test_increments_obeying_the_rows_keep_the_planes_symmetric(corner):
     # space of the rows, applied by Planes.advanced (eq. (22)), keeps the planes symmetric.
     _, patch, _, mirror = corner
     planes = detect_contacts(patch, _symmetric_q(patch, mirror), mirror=mirror).planes
-    rows = mirror.plane_rows(planes.keys, planes.normal, planes.point, planes.basis)
+    rows = mirror.plane_rows(planes.keys, planes.normal, planes.point, planes.basis).toarray()
     assert np.allclose(rows @ rows.T, np.eye(len(rows)), atol=1e-12)  # orthonormal, independent
     z = 1e-2 * np.random.default_rng(0).standard_normal(3 * planes.count)
     z -= rows.T @ (rows @ z)
@@ -125,3 +125,41 @@ def test_piece_images_swap_the_darts_pieces():
     image = a.copy()
     image[:, :2] = a[:, :2] @ mirror.M.T
     assert np.max(np.min(np.linalg.norm(image[:, None] - b[None], axis=2), axis=1)) < 1e-12
+
+
+@pytest.mark.parametrize(("rings", "point"), [(1, (1.0, 1.0)), (2, (1.0, 1.0)), (2, (0.0, 1.0))])
+def test_sparse_antisymmetric_rows_span_the_reversed_modes(rings, point):
+    # Independent value: the eigenvectors of eigenvalue -1 of the dense 5n x 5n map S (built column
+    # by column from map_dofs, then a symmetric eigensolver).  The sparse rows must be orthonormal,
+    # have the same projector (round-off, 1e-14) and hold at most ten entries a row (two scales).
+    from qpscale.contact.symmetry import antisymmetric_rows
+
+    patch = Design(rings=rings).patch()
+    n = patch.n_scales
+    M, perm = mirror_through(patch, np.array(point))
+    D = antisymmetric_rows(n, M, perm)
+    assert np.diff(D.indptr).max() <= 10
+    S = np.column_stack([map_dofs(e.reshape(n, 5), M, perm).ravel() for e in np.eye(5 * n)])
+    w, V = np.linalg.eigh(0.5 * (S + S.T))
+    ref = V[:, w < 0]
+    Dd = D.toarray()
+    assert np.abs(Dd @ Dd.T - np.eye(len(Dd))).max() < 1e-14
+    assert np.abs(Dd.T @ Dd - ref @ ref.T).max() < 1e-14
+
+
+def test_plane_images_match_a_key_by_key_reference(corner):
+    # The vectorised look-up against the definition, one key at a time: the image of (a, pa, b, pb)
+    # is the pair of the images, reordered (with s = -1) when the images come in the other order.
+    _, patch, _, mirror = corner
+    keys = detect_contacts(patch, _symmetric_q(patch, mirror), mirror=mirror).planes.keys
+    index = {k: j for j, k in enumerate(keys)}
+    image, sign = mirror.plane_images(keys)
+    for j, (a, pa, b, pb) in enumerate(keys):
+        ia, ib = int(mirror.perm[a]), int(mirror.perm[b])
+        ka, kb = int(mirror.pieces[a, pa]), int(mirror.pieces[b, pb])
+        key, s = ((ia, ka, ib, kb), 1.0) if ia < ib else ((ib, kb, ia, ka), -1.0)
+        assert image[j] == index.get(key, -1)
+        assert sign[j] == s
+    # a key whose image is absent maps to -1
+    image, _ = mirror.plane_images(keys[:1])
+    assert image[0] in (-1, 0)

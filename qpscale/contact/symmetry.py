@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..geometry import Array
 from ..tiling import Patch
@@ -23,6 +24,8 @@ from .placement import bodies_of
 
 # Vertices of a piece and of its image must coincide to this, in L.
 _MATCH_TOL = 1e-6
+# Scales whose pieces are matched to their images at once (bounds the (chunk, P, P, V, V) array).
+_CHUNK = 1024
 # Singular values of a plane orbit's equality rows below this are dependent rows, dropped.
 _RANK_TOL = 1e-9
 
@@ -38,15 +41,46 @@ def map_dofs(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return out
 
 
-def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
-    """Rows ``(r, 5 n)`` spanning the DOF modes the reflection (M, perm) reverses.
+def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csr_matrix:
+    """Rows ``(r, 5 n)`` (sparse, orthonormal) spanning the DOF modes the reflection (M, perm) reverses.
 
     A configuration is mirror-symmetric exactly when these rows annihilate it; imposed as
-    equalities in the increment QP they hold a path on its symmetric branch.
+    equalities in the increment QP they hold a path on its symmetric branch.  The map S of
+    :func:`map_dofs` is orthogonal and an involution, so the reversed modes are the range of
+    (I - S) / 2, built orbit by orbit (eq. (25a)): for a pair of scales i -> p != i, the five
+    rows (e_ik - S e_ik) / sqrt 2 (orthonormal, as S e_ik lies on scale p); for a scale on the
+    mirror (p = i), the eigenvectors of eigenvalue -1 of its own 5 x 5 block.  At most ten
+    entries a row: the rows cost memory linear in n.
     """
-    S = np.column_stack([map_dofs(e.reshape(n, 5), M, perm).ravel() for e in np.eye(5 * n)])
-    w, V = np.linalg.eigh(0.5 * (S + S.T))
-    return np.ascontiguousarray(V[:, w < 0].T)
+    M = np.asarray(M, dtype=float)
+    perm = np.asarray(perm, dtype=int)
+    B = np.zeros((5, 5))  # S on one scale's DOFs: (u_x, u_y) by M, u_z kept, (phi_x, phi_y) by det(M) M
+    B[:2, :2] = M
+    B[2, 2] = 1.0
+    B[3:5, 3:5] = np.linalg.det(M) * M
+    scales = np.arange(n)
+    pairs = scales[perm > scales]
+    w, V = np.linalg.eigh(0.5 * (B + B.T))
+    own = V[:, w < 0].T  # (k, 5): the reversed modes of a scale mapped onto itself
+    fixed = scales[perm == scales]
+    # pair rows: e_ik / sqrt 2 on scale i, -(B e_k) / sqrt 2 on scale p
+    k = np.arange(5)
+    pr = np.repeat(np.arange(5 * len(pairs)), 6)
+    cols_i = 5 * pairs[:, None] + k  # (P, 5)
+    cols_p = 5 * perm[pairs][:, None, None] + np.broadcast_to(k, (5, 5))  # (P, 5 (row k), 5)
+    vals = np.concatenate(
+        [np.ones((len(pairs), 5, 1)), -np.broadcast_to(B.T, (len(pairs), 5, 5))], axis=2
+    ) / np.sqrt(2.0)
+    cols = np.concatenate([cols_i[:, :, None], cols_p], axis=2)
+    fr = 5 * len(pairs) + np.repeat(np.arange(len(own) * len(fixed)), 5)
+    fcols = (5 * fixed[:, None, None] + np.broadcast_to(k, (len(own), 5))).reshape(-1)
+    fvals = np.broadcast_to(own, (len(fixed), *own.shape)).reshape(-1)
+    r = 5 * len(pairs) + len(own) * len(fixed)
+    out = sp.csr_matrix(
+        (np.r_[vals.ravel(), fvals], (np.r_[pr, fr], np.r_[cols.ravel(), fcols])), shape=(r, 5 * n)
+    )
+    out.eliminate_zeros()
+    return out
 
 
 def _piece_images(patch: Patch, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
@@ -56,17 +90,20 @@ def _piece_images(patch: Patch, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
     c0 = patch.centroids[0]
     placed = bodies.verts.copy()
     placed[..., :2] += (patch.centroids - c0)[:, None, None, :]
+    image = placed.copy()
+    image[..., :2] = image[..., :2] @ M.T
     out = np.empty((n, n_pieces), dtype=int)
-    for i in range(n):
-        for p in range(n_pieces):
-            image = placed[i, p].copy()
-            image[:, :2] = image[:, :2] @ M.T
-            # distance from each image vertex to the nearest vertex of each candidate piece
-            d = np.linalg.norm(image[None, :, None, :] - placed[perm[i]][:, None, :, :], axis=-1)
-            worst = d.min(axis=2).max(axis=1)
-            out[i, p] = int(np.argmin(worst))
-            if worst[out[i, p]] > _MATCH_TOL:
-                raise ValueError(f"piece {p} of scale {i} has no image under the reflection")
+    for lo in range(0, n, _CHUNK):  # scales in chunks: (chunk, P, P, V, V) distances at once
+        i = np.arange(lo, min(lo + _CHUNK, n))
+        target = placed[perm[i]]
+        # distance from each image vertex to the nearest vertex of each candidate piece
+        d = np.linalg.norm(image[i][:, :, None, :, None, :] - target[:, None, :, None, :, :], axis=-1)
+        worst = d.min(axis=4).max(axis=3)  # (chunk, P, P)
+        out[i] = np.argmin(worst, axis=2)
+        best = np.take_along_axis(worst, out[i][:, :, None], axis=2)[..., 0]
+        if np.any(best > _MATCH_TOL):
+            k, p = np.argwhere(best > _MATCH_TOL)[0]
+            raise ValueError(f"piece {p} of scale {i[k]} has no image under the reflection")
     return out
 
 
@@ -84,15 +121,15 @@ class Mirror:
         ``pieces[i, p]``: the piece of scale ``perm[i]`` that piece ``p`` of scale ``i`` maps onto.
     centre : ndarray (3,)
         A point of the mirror plane: scale 0's reference point, in L.
-    dof_rows : ndarray (r, 5 n)
-        Orthonormal rows spanning the antisymmetric DOF modes.
+    dof_rows : scipy.sparse.csr_matrix (r, 5 n)
+        Orthonormal rows spanning the antisymmetric DOF modes (at most ten entries a row).
     """
 
     M: Array
     perm: np.ndarray
     pieces: np.ndarray
     centre: Array
-    dof_rows: Array
+    dof_rows: sp.csr_matrix
 
     @classmethod
     def of(cls, patch: Patch, M: np.ndarray, perm: np.ndarray) -> Mirror:
@@ -123,15 +160,28 @@ class Mirror:
         cache: dict = self.__dict__.setdefault("_images", {})  # a path asks for the same set often
         if keys in cache:
             return cache[keys]
-        index = {k: j for j, k in enumerate(keys)}
-        image = np.full(len(keys), -1, dtype=int)
-        sign = np.ones(len(keys))
-        for j, (a, pa, b, pb) in enumerate(keys):
-            ia, ib = int(self.perm[a]), int(self.perm[b])
-            ka, kb = int(self.pieces[a, pa]), int(self.pieces[b, pb])
-            key, s = ((ia, ka, ib, kb), 1.0) if ia < ib else ((ib, kb, ia, ka), -1.0)
-            image[j] = index.get(key, -1)
-            sign[j] = s
+        P = len(keys)
+        image = np.full(P, -1, dtype=int)
+        sign = np.ones(P)
+        if P:
+            k = np.asarray(keys, dtype=np.int64).reshape(P, 4)
+            ia, ib = self.perm[k[:, 0]], self.perm[k[:, 2]]
+            ka, kb = self.pieces[k[:, 0], k[:, 1]], self.pieces[k[:, 2], k[:, 3]]
+            swap = ~(ia < ib)  # as the tuples order them
+            swapped, kept = np.stack([ib, kb, ia, ka], axis=1), np.stack([ia, ka, ib, kb], axis=1)
+            img = np.where(swap[:, None], swapped, kept).astype(np.int64)
+            sign[swap] = -1.0
+            base = np.int64(max(len(self.perm), self.pieces.shape[1], 1))
+
+            def code(x: np.ndarray) -> np.ndarray:  # one integer per key, in the order of the tuples
+                return ((x[:, 0] * base + x[:, 1]) * base + x[:, 2]) * base + x[:, 3]
+
+            own = code(k)
+            order = np.argsort(own, kind="stable")
+            at = np.searchsorted(own[order], code(img))
+            found = at < P
+            found[found] = own[order][at[found]] == code(img)[found]
+            image[found] = order[at[found]]
         image.flags.writeable = sign.flags.writeable = False
         if len(cache) > 256:
             cache.clear()
@@ -147,18 +197,21 @@ class Mirror:
         image, sign = self.plane_images(keys)
         n, p = normal.copy(), point.copy()
         R, c = self.M3, self.centre
-        for j in np.flatnonzero(image >= 0):
-            i = image[j]
-            mean = 0.5 * (normal[j] + sign[i] * R @ normal[i])
-            size = np.linalg.norm(mean)
-            if size < 0.5:  # a plane and its image's image disagree by over 120 deg: keep it
-                continue
-            n[j] = mean / size
-            p[j] = 0.5 * (point[j] + c + R @ (point[i] - c))
+        js = np.flatnonzero(image >= 0)
+        i = image[js]
+        mean = 0.5 * (normal[js] + sign[i, None] * (normal[i] @ R.T))
+        size = np.linalg.norm(mean, axis=1)
+        ok = size >= 0.5  # else a plane and its image's image disagree by over 120 deg: keep it
+        js, i = js[ok], i[ok]
+        n[js] = mean[ok] / size[ok, None]
+        p[js] = 0.5 * (point[js] + c + (point[i] - c) @ R.T)
         return n, p
 
-    def plane_rows(self, keys: Sequence[PlaneKey], normal: Array, point: Array, basis: Array) -> Array:
-        """Equality rows ``(r, 3 P)`` on the plane unknowns that keep symmetric planes symmetric.
+    def plane_rows(
+        self, keys: Sequence[PlaneKey], normal: Array, point: Array, basis: Array
+    ) -> sp.csr_matrix:
+        """Equality rows ``(r, 3 P)`` on the plane unknowns that keep symmetric planes symmetric
+        (sparse: at most six entries a row).
 
         Eq. (27): the image of plane j's increment is plane j*'s increment, for the two rotations
         ``t`` and the shift ``sigma`` of each plane (order t1, t2, sigma).  One orbit (a pair of
@@ -170,7 +223,7 @@ class Mirror:
         P = len(keys)
         js = np.flatnonzero(image >= np.arange(P))  # one plane per orbit present in the set
         if not len(js):
-            return np.zeros((0, 3 * P))
+            return sp.csr_matrix((0, 3 * P))
         i_, s = image[js], sign[js]
         A = s[:, None, None] * np.einsum("kai,ab,kbj->kij", basis[i_], R, basis[js])  # t_i = A t_j
         # offset about the centre o_k = n_k . (p_k - c), its increment sigma_k + (E_k t_k) . (p_k - c)
@@ -184,7 +237,8 @@ class Mirror:
         local[:, 2, 5] = -s
         local[:, 2, 3:5] = -s[:, None] * lever_j
         own = i_ == js  # a plane that is its own image: both column sets are the same
-        out = np.zeros((len(js), 3, 3 * P))
+        vals = np.zeros((len(js), 3, 6))
+        cols = np.zeros((len(js), 3, 6), dtype=int)
         keep = np.zeros((len(js), 3), dtype=bool)
         for subset, width in ((~own, 6), (own, 3)):
             if not subset.any():
@@ -192,12 +246,16 @@ class Mirror:
             block = local[subset] if width == 6 else local[subset, :, :3] + local[subset, :, 3:]
             _, sv, Vt = np.linalg.svd(block, full_matrices=False)
             base = np.stack([3 * i_[subset], 3 * js[subset]], axis=1) if width == 6 else 3 * js[subset, None]
-            cols = (base[:, :, None] + np.arange(3)).reshape(len(base), -1)
-            rows = np.zeros((len(base), Vt.shape[1], 3 * P))
-            np.put_along_axis(rows, np.broadcast_to(cols[:, None, :], (*Vt.shape[:2], width)), Vt, axis=2)
-            out[subset, : Vt.shape[1]] = rows
-            keep[subset, : Vt.shape[1]] = sv > _RANK_TOL * np.maximum(1.0, sv[:, :1])
-        return out[keep].reshape(-1, 3 * P)
+            columns = (base[:, :, None] + np.arange(3)).reshape(len(base), -1)
+            nr = Vt.shape[1]
+            vals[subset, :nr, :width] = Vt
+            cols[subset, :nr, :width] = columns[:, None, :]
+            keep[subset, :nr] = sv > _RANK_TOL * np.maximum(1.0, sv[:, :1])
+        vals, cols = vals[keep], cols[keep]  # (r, 6), in orbit order
+        rows = np.repeat(np.arange(len(vals)), 6)
+        out = sp.csr_matrix((vals.ravel(), (rows, cols.ravel())), shape=(len(vals), 3 * P))
+        out.eliminate_zeros()
+        return out
 
     def orbit_any(self, keys: Sequence[PlaneKey], flags: np.ndarray) -> np.ndarray:
         """``flags`` (P,) or-ed with their partners': a decision made for a whole orbit."""

@@ -140,14 +140,16 @@ import json, resource, sys, time
 from qpscale.api import puncture
 t0 = time.perf_counter()
 r = puncture(rings=int(sys.argv[1]), probe=sys.argv[2] == "1", max_memory_gb=1e3, max_minutes=1e4)
+use = resource.getrusage(resource.RUSAGE_SELF)
 print(json.dumps({"Fc_star": r.payload["Fc_star"], "qp_solves": r.payload["qp_solves"],
-                  "run_s": time.perf_counter() - t0,
-                  "maxrss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}))
+                  "run_s": time.perf_counter() - t0, "cpu_s": use.ru_utime + use.ru_stime,
+                  "maxrss_kb": use.ru_maxrss}))
 """
 
 
 def run_cost(rings: int, probe: bool = True) -> dict[str, float]:
-    """Wall time and peak resident memory (``ru_maxrss``) of one default puncture run on a patch
+    """Wall time, CPU time (user + system: less sensitive than the wall time to other jobs on a
+    shared machine) and peak resident memory (``ru_maxrss``) of one default puncture run on a patch
     of ``rings`` rings, in a fresh subprocess so that the peak is that run's alone."""
     cmd = [sys.executable, "-c", _COST_SCRIPT, str(rings), "1" if probe else "0"]
     t0 = time.perf_counter()
@@ -162,6 +164,7 @@ def run_cost(rings: int, probe: bool = True) -> dict[str, float]:
         "n_scales": side * side,
         "wall_s": wall,
         "run_s": payload["run_s"],
+        "cpu_s": payload["cpu_s"],
         "peak_gb": payload["maxrss_kb"] / 1e6,
         "Fc_star": payload["Fc_star"],
         "qp_solves": payload["qp_solves"],
@@ -264,6 +267,7 @@ def cost_study(rings: list[int], probe: bool = True) -> dict[str, object]:
     return {
         "rows": rows,
         "time_exponent": fitted_exponent(n, [float(r["run_s"]) for r in rows]) if len(rows) > 1 else None,
+        "cpu_exponent": fitted_exponent(n, [float(r["cpu_s"]) for r in rows]) if len(rows) > 1 else None,
         "memory_exponent": fitted_exponent(n, [float(r["peak_gb"]) for r in rows]) if len(rows) > 1 else None,
     }
 
