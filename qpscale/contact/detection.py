@@ -277,7 +277,11 @@ def _plane_set(world: World, q: Array, sat, rows) -> ContactSet:
     on_b = (rows.side == SIDE_B)[:, None]
     foot = rows.x - (rows.side * rows.gap)[:, None] * n
     xb, xa = np.where(on_b, rows.x, foot), np.where(on_b, foot, rows.x)
-    labels = tuple(f"{k[0]}:{k[1]}-{k[2]}:{k[3]} {lab}" for k, lab in zip(keys.tolist(), rows.labels))
+    # "a:pa-b:pb" per plane, then joined to the rows' own labels (one string operation per row).
+    prefix = np.array([f"{a}:{pa}-{b}:{pb} " for a, pa, b, pb in planes.keys], dtype=object)
+    labels = (
+        tuple((prefix[rows.plane] + np.array(rows.labels, dtype=object)).tolist()) if len(rows.gap) else ()
+    )
     return ContactSet(
         keys[:, 0],
         keys[:, 2],

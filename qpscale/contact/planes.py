@@ -172,5 +172,9 @@ def plane_rows(
     x = np.concatenate([VA[ja, va], VB[jb, vb]])
     gap = np.concatenate([ga[ja, va], gb[jb, vb]])
     order = np.lexsort((vertex, -side, plane))
-    labels = [f"P{'ab'[int(s > 0)]}v{v}" for s, v in zip(side[order].tolist(), vertex[order].tolist())]
+    # Row labels from a table of the (side, vertex) names: no string formatting per row.
+    names = np.array(
+        [[f"P{c}v{v}" for v in range(VA.shape[1] if len(rows) else 0)] for c in "ab"], dtype=object
+    )
+    labels = names[(side[order] > 0).astype(int), vertex[order]].tolist() if len(order) else []
     return PlaneRows(planes, plane[order], side[order], vertex[order], x[order], gap[order], labels)
