@@ -84,6 +84,31 @@ def test_failure_is_a_status_not_a_number(monkeypatch):
     assert np.isnan(table.loc[0, "Fc_star"]) and np.isnan(table.loc[0, "ratio_iso"])
 
 
+def test_scene_limit_counts_cpu_time_not_waiting(monkeypatch):
+    # A scene that only waits (sleeps, no CPU) is not stopped by a 0.3 s limit: the limit is CPU time,
+    # so a loaded machine's waiting does not fail scenes; one that computes past it is stopped.
+    import time
+
+    import qpscale.experiments.puncture as puncture
+
+    def waits(setup, progress=None):
+        time.sleep(0.6)
+        raise SolverFailure("piqp", "after waiting", increment=1)
+
+    def spins(setup, progress=None):
+        while True:
+            sum(range(1000))
+
+    monkeypatch.setattr(puncture, "run_puncture", waits)
+    row, _ = run_scene(ISO_SQUARE, limit_s=0.3)
+    assert row["status"] == "after waiting" and row["wall_s"] > 0.6 and row["cpu_s"] < 0.3
+    monkeypatch.setattr(puncture, "run_puncture", spins)
+    row, _ = run_scene(ISO_SQUARE, limit_s=0.3)
+    # In the main thread the limit is the process's CPU clock (other threads count too), cpu_s the
+    # scene thread's own: most of the 0.3 s, not exactly all of it.
+    assert row["status"] == "time_limit" and row["cpu_s"] > 0.2
+
+
 def test_ratios_use_the_isolated_scale_of_the_same_geometry():
     base = {"status": "ok", "kind": "puncture", "tiling": "arrayed", "interaction": "full"}
     rows = [
