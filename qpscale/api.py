@@ -525,6 +525,7 @@ def puncture(
         "accuracy": tol if backend != "penalty" else None,
         "wall_s": result.wall_s,
         "qp_solves": result.qp_solves,
+        "load_levels": result.load_levels,
         "n_scales": patch.n_scales,
         "shape": design.shape,
         "tiling": design.tiling,

@@ -516,7 +516,8 @@ def puncture(
             f"F_c* = {_fmt(p['Fc_star'], '.6g')}{extra} at tilt {_fmt(p['tilt_deg'], '.4g')} deg, load point "
             f"({_fmt(p['load_point'][0], '.3f')}, {_fmt(p['load_point'][1], '.3f')}), "
             f"delta_c* = {_fmt(p['delta_c_star'], '.4g')}{branch}; {p['increments']} increments, "
-            f"{p['qp_solves']} sequential QPs, max penetration {_fmt(p['max_penetration'], '.2g')} L, "
+            f"{p['load_levels']} load levels, {p['qp_solves']} QPs, "
+            f"max penetration {_fmt(p['max_penetration'], '.2g')} L, "
             f"{_fmt(p['wall_s'], '.2f')} s"
         )
 

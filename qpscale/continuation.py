@@ -351,6 +351,8 @@ class Path:
         What happened on the path, in order.
     solves : int
         Load levels solved.
+    qp_solves : int
+        Linearisations (QPs) those levels solved, every attempt counted (``LevelOutcome.solves``).
     """
 
     def __init__(
@@ -364,7 +366,7 @@ class Path:
         self.level, self.functions, self.settings = level, functions, settings
         self._origin = origin
         self.phi_c = np.deg2rad(settings.phi_c_deg)
-        self.solves = 0
+        self.solves = self.qp_solves = 0
         self.events: list[Event] = []
         self.mirror = mirror
         self.smooth_from = 0  # first state after the last jump (the curvature cap's window)
@@ -377,6 +379,7 @@ class Path:
         landing of a jump, sec. 4).  The rescues that fired join the path's events."""
         self.solves += 1
         outcome = self.level(start, delta, index, descent)
+        self.qp_solves += outcome.solves
         self.events.extend(outcome.rescues)
         return outcome
 

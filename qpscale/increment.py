@@ -393,11 +393,12 @@ class PunctureLevel:
             return first
         other = replace(self.settings, plane_damping=not self.settings.plane_damping)
         second = replace(self, settings=other).iterate()
+        solves = first.solves + second.solves
         if not second.converged:
-            return replace(first, rescues=first.rescues + second.rescues)
+            return replace(first, rescues=first.rescues + second.rescues, solves=solves)
         how = "damped" if other.plane_damping else "undamped"
         fired = Rescue("other_plane_update", self.delta, self.increment, how)
-        return replace(second, rescues=first.rescues + (fired,) + second.rescues)
+        return replace(second, rescues=first.rescues + (fired,) + second.rescues, solves=solves)
 
 
 # The increment QP linearised at a configuration q (its contact set, None without contact).

@@ -63,12 +63,16 @@ class LevelOutcome(Generic[S]):
         What to report when the level failed: the backend's status, the increment, the detail.
     rescues : tuple of Rescue
         The declared rescues that fired on the way (``events.LEVEL_RESCUES``), in order.
+    solves : int
+        Linearisations solved on the way, converged or not (QPs; for the penalty baseline its
+        Newton systems), a retried QP counted twice.
     """
 
     status: LevelStatus
     state: S | None
     failure: SolverFailure | None = None
     rescues: tuple[Rescue, ...] = ()
+    solves: int = 0
 
     @property
     def converged(self) -> bool:
@@ -211,22 +215,24 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
     steps: list[float] = []
     rescues: list[Rescue] = []
     build_s = solve_s = 0.0
-    work = 0
+    work = solves = 0
     for _ in range(c.max_iter):
         t0 = time.perf_counter()
         lin = problem.linearise(x, rows, refresh)
         refresh = None
         build_s += time.perf_counter() - t0
         step = problem.solve(lin, tightened)
+        solves += step.work + (step.retried is not None)
         if step.answer is None and tightened:
             # The backend cannot reach the tightened tolerance: back to the one asked for.
             tightened = False
             rescues.append(Rescue("stall_tighten", c.delta, c.increment, "tightened tolerance not reached"))
             step = problem.solve(lin, tightened)
+            solves += step.work + (step.retried is not None)
         if step.retried is not None:
             rescues.append(Rescue("qp_retry", c.delta, c.increment, f"first status {step.retried}"))
         if step.answer is None:
-            return LevelOutcome(LevelStatus.QP_FAILED, None, step.failure, tuple(rescues))
+            return LevelOutcome(LevelStatus.QP_FAILED, None, step.failure, tuple(rescues), solves)
         solve_s += step.seconds
         work += step.work
         dx, rows = step.dx, step.rows
@@ -238,7 +244,7 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
                 refresh = c.penetration_tol
                 continue
             state = problem.state(x, step.answer, Progress(work, pen, build_s, solve_s, tightened))
-            return LevelOutcome(LevelStatus.CONVERGED, state, None, tuple(rescues))
+            return LevelOutcome(LevelStatus.CONVERGED, state, None, tuple(rescues), solves)
         steps.append(size)
         if c.tighten and not tighten_tried and _stalled(steps):
             tightened = tighten_tried = True
@@ -249,7 +255,7 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
         x, rows = _accelerated(accel, x, dx, rows)
     detail = f"last |dx| = {np.max(np.abs(dx), initial=0.0):.3g} after {c.max_iter} linearisations"
     failure = SolverFailure(c.solver, c.unconverged, c.increment, detail)
-    return LevelOutcome(LevelStatus.NOT_CONVERGED, None, failure, tuple(rescues))
+    return LevelOutcome(LevelStatus.NOT_CONVERGED, None, failure, tuple(rescues), solves)
 
 
 def qp_step(

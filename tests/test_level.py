@@ -145,6 +145,18 @@ def test_qp_retry_fires_on_a_near_miss_and_keeps_the_state(level, monkeypatch):
     _same_state(out.state, clean)
 
 
+@pytest.mark.parametrize("faults", [{}, {"short": {2}}, {"fail": {2}}])
+def test_a_levels_qp_count_is_the_backends_calls(level, monkeypatch, faults):
+    # LevelOutcome.solves (the JSON's qp_solves, summed over a path) against the backend's own call
+    # count: plain, with a retried QP (two calls), and with a failed first attempt and its retry
+    # followed by the other plane update (every call of both attempts).
+    args, _ = level
+    counter = Faults(**faults)
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", counter)
+    out = PunctureLevel(*args, CLARABEL).solve()
+    assert out.converged and out.solves == counter.calls > 1
+
+
 def test_other_plane_update_fires_when_the_first_attempt_fails_and_keeps_the_state(level, monkeypatch):
     args, clean = level
     faults = Faults(fail={2})  # the first attempt's second QP fails, and so does its retry

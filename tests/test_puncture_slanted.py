@@ -52,7 +52,7 @@ def test_a_looping_event_location_now_reaches_phi_c_with_its_work_balanced(name)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"
     unconfirmed = [e.delta for e in result.events if e.kind == "branch" and not e.confirmed]
     assert len(unconfirmed) <= 1, unconfirmed
-    assert result.qp_solves < 400  # levels solved (808 before)
+    assert result.load_levels < 400  # levels solved (808 before)
     work, balance = work_balance(setup, result)
     assert work == pytest.approx(balance, rel=2e-3)
 

@@ -175,6 +175,7 @@ class PunctureResult:
     branch: BranchRecord
     wall_s: float
     qp_solves: int
+    load_levels: int
     candidates: list[Candidate] = field(default_factory=list)
     Fc_check: ForceCheck | None = None
 
@@ -256,7 +257,7 @@ def puncture_path(
 
 def _one_point(
     setup: PunctureSetup, patch: Patch, K: sp.csc_matrix, xy: np.ndarray
-) -> tuple[list[Equilibrium], list[Event], int, BranchRecord, LevelSolver]:
+) -> tuple[list[Equilibrium], list[Event], tuple[int, int], BranchRecord, LevelSolver]:
     """The path of one load point and what its stability check found (sec. 4)."""
     load = _load_point(patch, xy)
     check = setup.probe and _checkable(setup)
@@ -264,13 +265,14 @@ def _one_point(
     if mirror is None:
         path = puncture_path(setup, patch, K, load, check=check)
         states = path.run()
-        return states, path.events, path.solves, BranchRecord.of_events(path.events, check), path.level
+        count = (path.solves, path.qp_solves)
+        return states, path.events, count, BranchRecord.of_events(path.events, check), path.level
     return _symmetric_point(setup, patch, K, load, xy, mirror)
 
 
 def _symmetric_point(
     setup: PunctureSetup, patch: Patch, K: sp.csc_matrix, load: LoadPoint, xy: np.ndarray, mirror: tuple
-) -> tuple[list[Equilibrium], list[Event], int, BranchRecord, LevelSolver]:
+) -> tuple[list[Equilibrium], list[Event], tuple[int, int], BranchRecord, LevelSolver]:
     """A load point on a mirror line: the symmetric branch, held by constraints, until a state
     fails the second-variation test (located by the path's bisection); the path then continues,
     unconstrained, from the state pushed along the unstable mode to a fixed side."""
@@ -278,7 +280,8 @@ def _symmetric_point(
     sym = puncture_path(setup, patch, K, load, mirror=Mirror.of(patch, M, perm), check=True)
     try:
         states = sym.run()
-        return states, sym.events, sym.solves, BranchRecord("second variation", mirror=True), sym.level
+        count = (sym.solves, sym.qp_solves)
+        return states, sym.events, count, BranchRecord("second variation", mirror=True), sym.level
     except Bifurcation as exc:
         lost = exc
     lo, hi, sv = lost.before[-1], lost.state, lost.stability
@@ -294,7 +297,8 @@ def _symmetric_point(
         followed="asymmetric",
         asymmetry_at_failure=_asymmetry(states[-1].q, M, perm),
     )
-    return states, sym.events + free.events, sym.solves + free.solves, record, free.level
+    count = (sym.solves + free.solves, sym.qp_solves + free.qp_solves)
+    return states, sym.events + free.events, count, record, free.level
 
 
 def _side(mode: np.ndarray, M: np.ndarray) -> float:
@@ -333,12 +337,12 @@ def _run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None) 
         points = [verts[orbit[0]] for orbit in vertex_orbits(patch, verts)]
     candidates: list[Candidate] = []
     best = None
-    solves = 0
+    levels = solves = 0
     for xy in points:
         if progress:
             progress(f"load point ({xy[0]:.3f}, {xy[1]:.3f})")
-        states, events, n, record, level = _one_point(setup, patch, K, xy)
-        solves += n
+        states, events, (n_levels, n_qps), record, level = _one_point(setup, patch, K, xy)
+        levels, solves = levels + n_levels, solves + n_qps
         candidates.append(Candidate((float(xy[0]), float(xy[1])), states[-1].F, record))
         if best is None or states[-1].F < best[0][-1].F:
             best = (states, events, xy, record, level)
@@ -355,6 +359,7 @@ def _run_puncture(setup: PunctureSetup, progress: Callable[[str], None] | None) 
         branch=branch,
         wall_s=time.perf_counter() - t0,
         qp_solves=solves,
+        load_levels=levels,
         candidates=candidates,
         Fc_check=Fc_check,
     )

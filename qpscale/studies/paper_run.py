@@ -71,6 +71,7 @@ def _puncture(scene: Scene) -> tuple[dict, dict]:
         "max_penetration": r.max_penetration,
         "n_increments": len(r.states) - 1,
         "qp_solves": r.qp_solves,
+        "load_levels": r.load_levels,
         "branched": r.branch.branched,
         "coupling": setup.coupling_factor,
         "Fc_N": force_from_star(r.Fc_star, E_S_PA, NU_S, L_M),

@@ -46,6 +46,7 @@ PUNCTURE_RESULTS = (
     "max_penetration",
     "increments",
     "qp_solves",
+    "load_levels",
     "n_scales",
     "branched",
 )
