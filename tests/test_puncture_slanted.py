@@ -35,6 +35,41 @@ LOOPED = {
 }
 
 
+# Design 140 of the same grid (seed 1000): a 3x3 staggered triangle array that ran out of its 30
+# CPU-s.  A confirmed instability's landing lay 6e-8 L above the state before it, and the secant
+# of those two states, over the next step of 0.03 L, started the level in another basin; its
+# bisection came back down to the same instability, without end.
+LEAPT = (
+    Design(
+        shape="triangle",
+        tiling="staggered",
+        slant_deg=49.247976722535604,
+        slant_dir_deg=45.0,
+        gap=0.038061869734703595,
+        thickness=1.881544605912745,
+        rings=1,
+    ),
+    0.056395315051888995,
+    0.04707791900319791,
+    (1.5439563987298264, 3.2987217493331498),
+)
+
+
+def test_a_step_after_a_landing_is_not_extrapolated_across_it():
+    # Measured: 134 levels, F_c* = 1.4264132405, verified against the exact active-set solution.
+    # Independent checks: the exact F_c check and the conservation of work (as above).
+    design, coupling, nu, point = LEAPT
+    setup = PunctureSetup(
+        design=design, interaction="contact", coupling=coupling, nu=nu, load_point=point, increments=4
+    )
+    result = run_puncture(setup)
+    assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
+    assert result.Fc_check is not None and result.Fc_check.status == "verified"
+    assert result.qp_solves < 300
+    work, balance = work_balance(setup, result)
+    assert work == pytest.approx(balance, rel=2e-3)
+
+
 @pytest.mark.parametrize("name", list(LOOPED))
 def test_a_looping_event_location_now_reaches_phi_c_with_its_work_balanced(name):
     # Before: the path found one unconfirmed instability 46 times (808 levels, 21 CPU-s) because a
