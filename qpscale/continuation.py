@@ -59,9 +59,11 @@ STABILITY_TOL = 1e-6
 LANDING_MAX_ITER = 3000
 SNAP_RESOLUTION = 1e-7
 # A jump whose landing stays below phi_c is located to this fraction of its depth only: where it
-# lies within the bracket moves no state of the path after it (the landing's branch is continuous,
-# sec. 2), so the last 7 halvings to ``SNAP_RESOLUTION`` bought nothing but levels.  A landing past
-# phi_c is the failure, and its bracket is refined to ``SNAP_RESOLUTION`` before it is reported.
+# lies within the bracket changes only the start of the landing (the state 1e-5 instead of 1e-7
+# of the depth below it), not the branch it lands on (5x5 triangle 60/45: F_c* the same to 1e-9),
+# so the last 7 halvings bought nothing but levels.  A landing past phi_c is the failure, and its
+# bracket is refined to ``SNAP_RESOLUTION`` before it is reported.  (A path of twenty snaps can
+# land otherwise: fuzz design 78, puncture.md sec. 2.)
 JUMP_RESOLUTION = 1e-5
 # A converged state lies within this many step tolerances of the exact one (the sequential QP
 # stops at |dq| <= step_tol and contracts at a rate of 0.5-0.9): the energy balance's noise floor.
@@ -524,7 +526,10 @@ class Path:
 
         A step that releases energy, or ends in a state failing the stability test, is bisected
         (``ceiling``: the depth of the last such step) until the event is located within
-        ``SNAP_RESOLUTION``; a loss of stability is located by regula falsi (Illinois) on the
+        ``_resolution`` (a jump to ``JUMP_RESOLUTION``, refined to ``SNAP_RESOLUTION`` when its
+        landing passes phi_c; anything else to ``SNAP_RESOLUTION``); after each state kept inside a
+        jump's bracket the ceiling is retested, until a retest reproduces the jump's release; a
+        loss of stability is located by regula falsi (Illinois) on the
         smallest eigenvalue instead, which is smooth along the branch (``_split``), and its
         ceiling is retested once, when the bracket is below the resolution.  The path then leaves
         its branch (the jump's landing state, or the unstable state pushed along its mode), and a
