@@ -70,6 +70,10 @@ JUMP_RESOLUTION = 1e-5
 STATE_ERROR = 10.0
 # Target error of the secant predictor, in L or rad (``_growth``): the step is sized by it.
 PREDICTOR_ERROR = 1e-3
+# States kept inside brackets (locating events) allowed per step of the path's budget: the budget
+# counts steps only (``run``), and this bound keeps a cycle of brackets that never lets a step
+# through finite (fuzz design 78, 22 located snaps, kept 562 states on its way to phi_c).
+LOCATED_PER_STEP = 3
 # The secant predictor extrapolates over at most this many times its base (``predict``): the step
 # rule (S) grows the step by at most 2.
 PREDICTOR_REACH = 2.0
@@ -555,7 +559,10 @@ class Path:
         reproduced = False  # the jump's ceiling was flagged again from a nearer start (no retests)
         released = 0.0  # the energy the ceiling's step released (|R|)
         located = 0  # states kept inside a bracket: they locate an event, they are no steps
-        while len(states) - located <= self.settings.max_increments:
+        while (
+            len(states) - located <= self.settings.max_increments
+            and len(states) <= (1 + LOCATED_PER_STEP) * self.settings.max_increments
+        ):
             last = states[-1]
             bracketed = ceiling < np.inf
             if ceiling < np.inf:
