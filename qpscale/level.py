@@ -207,7 +207,7 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
     labels: Hashable = None
     dx = np.zeros_like(x)
     refresh: float | None = None
-    tightened = tighten_tried = False
+    tightened = tighten_tried = confirmed = False
     steps: list[float] = []
     rescues: list[Rescue] = []
     build_s = solve_s = 0.0
@@ -235,10 +235,20 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
             x = x + dx
             pen = problem.penetration(x)
             if pen > c.penetration_tol:
-                refresh = c.penetration_tol
+                refresh, confirmed = c.penetration_tol, False
+                continue
+            if not confirmed:
+                # One more linearisation, with the rows as the step left them: a separating plane
+                # may swing about its hinge in a step that moves x by nothing, and the state is a
+                # fixed point only if the next step, with the plane where it swung, is small too.
+                confirmed = True
                 continue
             state = problem.state(x, step.answer, Progress(work, pen, build_s, solve_s, tightened))
             return LevelOutcome(LevelStatus.CONVERGED, state, None, tuple(rescues))
+        if confirmed:
+            # Not a fixed point after all: the unaccelerated step breaks Anderson's history.
+            accel.reset()
+            confirmed = False
         steps.append(size)
         if c.tighten and not tighten_tried and _stalled(steps):
             tightened = tighten_tried = True
