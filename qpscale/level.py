@@ -192,7 +192,9 @@ class LevelProblem(Protocol[L, S]):
 def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | None = None) -> LevelOutcome[S]:
     """One attempt at a load level from ``start`` (formulations/increment.md sec. 4-5).
 
-    Linearise, solve, step; converged when ``max |dx| <= step_tol``, eq. (5), and then only if
+    Linearise, solve, step; converged when ``max |dx| <= step_tol``, eq. (5), twice in a row (the
+    second linearisation with the rows as the first step left them: a plane's swing about its
+    hinge moves no DOF in the step that makes it), and then only if
     the exact penetration at ``x + dx`` is at most ``penetration_tol``, eq. (6), otherwise the
     iteration goes on with the overlapping pairs' planes refreshed.  While the row set keeps its
     labels the iterates are Anderson-accelerated (DOFs and planes together, ``_accelerated``).
