@@ -107,9 +107,9 @@ SLANTED_5X5 = {
     # Before: 27 pushes off one instability "confirmed" by energy drops of 1e-12 (the resolution is
     # 2e-6), each restarting the path from the unstable state 4e-8 L further on: 712 levels, 158 s
     # for this vertex, F_c* = 2.9666966433.  Now the instability is unconfirmed and the path fails by
-    # the located snap of its branch (tilt 12.95 -> 13.80 deg): 111 levels, F_c* = 2.9666958989,
-    # 2.5e-7 below (the failure's depth is the branch's end, 2.4e-7 L before the push that finally
-    # escaped it).
+    # the located snap of its branch (tilt 12.95 -> 13.80 deg): ~110 levels, F_c* = 2.9666956,
+    # 3.4e-7 below (the failure's depth is the branch's end, 2.4e-7 L before the push that finally
+    # escaped it).  Triangle: 2.5386775, as before, ~210 levels at this vertex.
     "hexagon": (
         Design(shape="hexagon", slant_deg=60.0, slant_dir_deg=45.0),
         (0.15017493956804673, 1.8451481107929881),
