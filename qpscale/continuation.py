@@ -58,11 +58,25 @@ STABILITY_TOL = 1e-6
 # rate of its negative eigenvalue, slowly near the branch point.
 LANDING_MAX_ITER = 3000
 SNAP_RESOLUTION = 1e-7
+# A jump whose landing stays below phi_c is located to this fraction of its depth only: where it
+# lies within the bracket changes only the start of the landing (the state 1e-5 instead of 1e-7
+# of the depth below it), not the branch it lands on (5x5 triangle 60/45: F_c* the same to 1e-9),
+# so the last 7 halvings bought nothing but levels.  A landing past phi_c is the failure, and its
+# bracket is refined to ``SNAP_RESOLUTION`` before it is reported.  (A path of twenty snaps can
+# land otherwise: fuzz design 78, puncture.md sec. 2.)
+JUMP_RESOLUTION = 1e-5
 # A converged state lies within this many step tolerances of the exact one (the sequential QP
 # stops at |dq| <= step_tol and contracts at a rate of 0.5-0.9): the energy balance's noise floor.
 STATE_ERROR = 10.0
 # Target error of the secant predictor, in L or rad (``_growth``): the step is sized by it.
 PREDICTOR_ERROR = 1e-3
+# States kept inside brackets (locating events) allowed per step of the path's budget: the budget
+# counts steps only (``run``), and this bound keeps a cycle of brackets that never lets a step
+# through finite (fuzz design 78, 22 located snaps, kept 562 states on its way to phi_c).
+LOCATED_PER_STEP = 3
+# The secant predictor extrapolates over at most this many times its base (``predict``): the step
+# rule (S) grows the step by at most 2.
+PREDICTOR_REACH = 2.0
 # A level that needed more sequential-QP iterations than this halves the next step.
 HARD_LEVEL = 30
 # The failure state's tilt must lie within this fraction of phi_c (issue #5: F_c at phi_c to 1e-6).
@@ -399,10 +413,20 @@ class Path:
         """The unloaded state."""
         return self._origin
 
-    def branch_off(self, eq: Equilibrium, sv: Stability, sides: tuple[float, ...]) -> Equilibrium:
+    def branch_off(
+        self, eq: Equilibrium, sv: Stability, sides: tuple[float, ...], resolved: bool = True
+    ) -> Equilibrium:
         """Push ``eq`` along the unstable mode (each side given), re-solve at the same depth and
-        keep the state of lowest energy (it lies on the branch the path takes)."""
+        keep the state of lowest energy (it lies on the branch the path takes).
+
+        With ``resolved`` a landing counts only if it holds less energy than ``eq`` by more than
+        the two states can resolve (``noise``): a push of 1e-4 L that the plain iteration brings
+        back to ``eq`` changes the energy by round-off, and taking that as a branch restarted the
+        path from ``eq`` itself and found the same instability again (fuzz design 140, sec. 4).
+        """
         energy = self.energy(eq)
+        if resolved:
+            energy -= self.noise(eq, eq)
         best: tuple[float, Equilibrium] | None = None
         for side in sides:
             start = Equilibrium(
@@ -415,7 +439,8 @@ class Path:
             e = self.energy(moved)
             if e < energy and (best is None or e < best[0]):
                 best = (e, moved)
-        self.events.append(Branch(eq.delta, sv.min_eigenvalue, energy - best[0] if best else 0.0))
+        drop = self.energy(eq) - best[0] if best else 0.0
+        self.events.append(Branch(eq.delta, sv.min_eigenvalue, drop))
         return best[1] if best else eq
 
     def breaks_symmetry(self, sv: Stability) -> bool:
@@ -441,7 +466,7 @@ class Path:
         a, b, side = lo, hi, 0
         for _ in range(60):
             d = (a.delta * f_hi - b.delta * f_lo) / (f_hi - f_lo)
-            eq = self.solve(a, d, index).unwrap()
+            eq = self.solve(_between(a, b, d), d, index).unwrap()
             f = self.tilt_of(eq) - self.phi_c
             if abs(f) <= TILT_TARGET * self.phi_c:
                 return eq
@@ -495,15 +520,23 @@ class Path:
         stopped each increment at a few micro-L, and the 3x3 hexagon array slanted 60 deg at
         45 deg ended at a tilt of 0.04 deg after 400 increments (puncture.md sec. 2).
         """
-        floor = STATE_ERROR * STEP_TOL * (self.functions.force_norm(a) + self.functions.force_norm(b))
-        return abs(self.released(a, b)) > SNAP_WORK * abs(_work(a, b)) + floor
+        return abs(self.released(a, b)) > SNAP_WORK * abs(_work(a, b)) + self.noise(a, b)
+
+    def noise(self, a: Equilibrium, b: Equilibrium) -> float:
+        """What the stored energies of two converged states can resolve: each is within
+        ``STATE_ERROR`` step tests (``STEP_TOL``) of its exact state, so its energy is known to that
+        times ``|K q|_1`` (``snapped``)."""
+        return STATE_ERROR * STEP_TOL * (self.functions.force_norm(a) + self.functions.force_norm(b))
 
     def run(self, states: list[Equilibrium] | None = None, step: float | None = None) -> list[Equilibrium]:
         """Step the load until the tilt reaches phi_c; continue from ``states`` if given.
 
         A step that releases energy, or ends in a state failing the stability test, is bisected
         (``ceiling``: the depth of the last such step) until the event is located within
-        ``SNAP_RESOLUTION``; a loss of stability is located by regula falsi (Illinois) on the
+        ``_resolution`` (a jump to ``JUMP_RESOLUTION``, refined to ``SNAP_RESOLUTION`` when its
+        landing passes phi_c; anything else to ``SNAP_RESOLUTION``); after each state kept inside a
+        jump's bracket the ceiling is retested, until a retest reproduces the jump's release; a
+        loss of stability is located by regula falsi (Illinois) on the
         smallest eigenvalue instead, which is smooth along the branch (``_split``), and its
         ceiling is retested once, when the bracket is below the resolution.  The path then leaves
         its branch (the jump's landing state, or the unstable state pushed along its mode), and a
@@ -525,11 +558,19 @@ class Path:
         g_last: float | None = None
         g_ceiling: float | None = None
         moved = 0
-        while len(states) <= self.settings.max_increments:
+        fine = False  # a jump's landing passed phi_c: its bracket is refined to SNAP_RESOLUTION
+        reproduced = False  # the jump's ceiling was flagged again from a nearer start (no retests)
+        released = 0.0  # the energy the ceiling's step released (|R|)
+        located = 0  # states kept inside a bracket: they locate an event, they are no steps
+        while (
+            len(states) - located <= self.settings.max_increments
+            and len(states) <= (1 + LOCATED_PER_STEP) * self.settings.max_increments
+        ):
             last = states[-1]
+            bracketed = ceiling < np.inf
             if ceiling < np.inf:
                 step = ceiling - last.delta if retest else _split(ceiling - last.delta, g_last, g_ceiling)
-            guess = predict(states, last.delta + step)
+            guess = predict(states, last.delta + step, self.smooth_from)
             outcome = self.solve(guess, last.delta + step, len(states))
             if outcome.state is None:
                 assert outcome.failure is not None
@@ -554,7 +595,12 @@ class Path:
                         return states
                     self.smooth_from = len(states)
                     pending.clear()
-                (ceiling, kind), retest, landed = _next_ceiling(pending, eq.delta), True, True
+                (ceiling, kind), retest, landed, reproduced = (
+                    _next_ceiling(pending, eq.delta),
+                    True,
+                    True,
+                    False,
+                )
                 g_ceiling = None
                 if ceiling == np.inf:
                     step = resume
@@ -563,12 +609,22 @@ class Path:
             sv = self.stability(eq) if self.settings.check and not landed else None
             unstable = sv is not None and not sv.stable and not self.unconfirmed
             if unstable or (self.settings.conservative and not landed and self.snapped(last, eq)):
-                if step > SNAP_RESOLUTION * eq.delta:
-                    now = "unstable" if unstable else "snap"
+                now = "unstable" if unstable else "snap"
+                if step > _resolution(now, fine) * eq.delta:
+                    # A jump flagged again from the nearer start of a retest, releasing as much
+                    # energy over the shorter step, is a finite jump, neither a leap of the
+                    # extrapolated iteration nor the quadrature error at a kink (whose release
+                    # falls with the step, and whose bracket a retest from nearer passes): it is
+                    # bisected without further retests.
+                    release = abs(self.released(last, eq)) if now == "snap" else 0.0
+                    again = retest and bracketed and kind == now == "snap" and release >= 0.5 * released
+                    released = release
                     if ceiling == np.inf:
-                        resume, moved = step, 0
+                        resume, moved, reproduced = step, 0, False
                     elif kind != now:
                         pending.append((ceiling, kind))
+                        reproduced = False
+                    reproduced = reproduced or again
                     ceiling, retest, kind = eq.delta, False, now
                     g_ceiling = sv.min_eigenvalue + STABILITY_TOL if unstable and sv is not None else None
                     if moved == 1 and g_last is not None:
@@ -582,6 +638,19 @@ class Path:
                     landing = self.branch_off(eq, sv, sides=(1.0, -1.0))
                 else:
                     landing = self.solve(last, eq.delta, len(states), descent=True).unwrap()
+                    if (
+                        self.tilt_of(landing) >= self.phi_c
+                        and self.snapped(last, landing)
+                        and step > SNAP_RESOLUTION * eq.delta
+                    ):
+                        # The jump is the failure (sec. 3): locate it to SNAP_RESOLUTION first.
+                        if ceiling == np.inf:
+                            resume, moved = step, 0
+                        elif kind != "snap":
+                            pending.append((ceiling, kind))
+                        ceiling, retest, kind, g_ceiling, fine = eq.delta, False, "snap", None, True
+                        continue
+                fine = False
                 if not unstable and not self.snapped(last, landing):
                     # The plain iteration follows the path where the extrapolated one leapt into
                     # another basin: no jump, an ordinary step.
@@ -597,7 +666,7 @@ class Path:
                     branch = self.events[at]
                     assert isinstance(branch, Branch)
                     self.events[at] = replace(branch, confirmed=False)
-                    (ceiling, kind), retest = _next_ceiling(pending, eq.delta), True
+                    (ceiling, kind), retest, reproduced = _next_ceiling(pending, eq.delta), True, False
                     g_ceiling = None
                     if ceiling == np.inf:
                         step = resume
@@ -610,11 +679,13 @@ class Path:
                 # Below the ceiling the path is continuous.  Retest the rest of a snap's bracket (the
                 # ceiling's state came from a farther start); an instability's once it is resolved.
                 if eq.delta >= ceiling:
-                    ceiling, kind = _next_ceiling(pending, eq.delta)
+                    (ceiling, kind), reproduced = _next_ceiling(pending, eq.delta), False
                     g_ceiling = None
                     if ceiling == np.inf:
                         step = resume
-                retest = g_ceiling is None or ceiling - eq.delta <= SNAP_RESOLUTION * eq.delta
+                retest = (g_ceiling is None and not reproduced) or (
+                    ceiling - eq.delta <= _resolution(kind, fine) * eq.delta
+                )
                 if moved == -1 and g_ceiling is not None:
                     g_ceiling /= 2
                 moved = -1
@@ -631,6 +702,7 @@ class Path:
                 self.unconfirmed = False
             self._record_contact_change(last, eq)
             states.append(eq)
+            located += bracketed
             g_last = sv.min_eigenvalue + STABILITY_TOL if sv is not None else None
             if ceiling == np.inf:
                 cap = _curvature_cap(states[self.smooth_from :])
@@ -655,7 +727,7 @@ class Path:
         """
         lo, hi = bifurcation.before[-1], bifurcation.state
         sv = replace(bifurcation.stability, mode=mode)
-        on_branch = self.branch_off(hi, sv, sides=(1.0,))
+        on_branch = self.branch_off(hi, sv, sides=(1.0,), resolved=False)
         states = list(bifurcation.before)
         if self.left_branch(lo, on_branch):
             return states
@@ -704,17 +776,34 @@ def unloaded(n_scales: int) -> Equilibrium:
     )
 
 
-def predict(states: list[Equilibrium], delta: float) -> Equilibrium:
+def predict(states: list[Equilibrium], delta: float, since: int = 0) -> Equilibrium:
     """Secant predictor: start the next level from the states extrapolated to ``delta``.
 
     The sequential QP converges linearly from its start; extrapolating the last two states makes
-    the first residual second order in the step (formulations/puncture.md, sec. 2).
+    the first residual second order in the step (formulations/puncture.md, sec. 2).  Only the
+    states of one continuous stretch of the path count (``states[since:]``, from the last jump's
+    landing on), and the secant's base must be at least ``1 / PREDICTOR_REACH`` of the step: the
+    nearest earlier state that gives such a base is taken, and with none the level starts from
+    the last state.  Across a landing, or over the 1e-7 L base of a resolved bracket, the secant
+    extrapolates the states' own error (and the jump) by up to 1e5 and starts the level in
+    another basin (fuzz design 140: a push's landing 6e-8 L above the state before it, then a
+    step of 0.03 L from their secant, a leap that was bisected back to the same instability
+    without end).
     """
-    last = states[-1]
-    if len(states) < 2 or last.delta <= states[-2].delta:
+    segment = states[max(0, min(since, len(states) - 1)) :]
+    last = segment[-1]
+    step = delta - last.delta
+    prev = next(
+        (
+            p
+            for p in reversed(segment[:-1])
+            if p.delta < last.delta and PREDICTOR_REACH * (last.delta - p.delta) >= step
+        ),
+        None,
+    )
+    if prev is None:
         return last
-    prev = states[-2]
-    ratio = (delta - last.delta) / (last.delta - prev.delta)
+    ratio = step / (last.delta - prev.delta)
     guess = last.q + ratio * (last.q - prev.q)
     return Equilibrium(
         q=guess,
@@ -727,12 +816,28 @@ def predict(states: list[Equilibrium], delta: float) -> Equilibrium:
     )
 
 
+def _between(a: Equilibrium, b: Equilibrium, delta: float) -> Equilibrium:
+    """The start of a level at ``delta`` inside the bracket of two states of one continuous
+    stretch: their configurations interpolated (an O(h^2) start, like the secant predictor's),
+    with the lower state's contact set.  Started from the lower state itself (an O(h) start), a
+    failure search of the 5x5 dart slanted 60 deg towards 45 deg met a linearisation that PIQP
+    could not solve (its iteration limit) 0.03 L above it (formulations/puncture.md sec. 3)."""
+    t = (delta - a.delta) / (b.delta - a.delta)
+    return replace(a, q=a.q + t * (b.q - a.q), delta=delta, iterations=0)
+
+
 def _next_ceiling(pending: list[tuple[float, str]], delta: float) -> tuple[float, str]:
     """The nearest open ceiling above ``delta`` and its kind (removed from ``pending`` with those
     passed), or (inf, "") when none is left."""
     while pending and pending[-1][0] <= delta:
         pending.pop()
     return pending.pop() if pending else (np.inf, "")
+
+
+def _resolution(kind: str, fine: bool) -> float:
+    """Fraction of its depth to which a bracket of ``kind`` is located: ``JUMP_RESOLUTION`` for a
+    jump (``snap``) unless its landing passed phi_c (``fine``), else ``SNAP_RESOLUTION``."""
+    return JUMP_RESOLUTION if kind == "snap" and not fine else SNAP_RESOLUTION
 
 
 def _split(width: float, g_lo: float | None, g_hi: float | None) -> float:

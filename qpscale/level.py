@@ -196,7 +196,9 @@ class LevelProblem(Protocol[L, S]):
 def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | None = None) -> LevelOutcome[S]:
     """One attempt at a load level from ``start`` (formulations/increment.md sec. 4-5).
 
-    Linearise, solve, step; converged when ``max |dx| <= step_tol``, eq. (5), and then only if
+    Linearise, solve, step; converged when ``max |dx| <= step_tol``, eq. (5), twice in a row (the
+    second linearisation with the rows as the first step left them: a plane's swing about its
+    hinge moves no DOF in the step that makes it), and then only if
     the exact penetration at ``x + dx`` is at most ``penetration_tol``, eq. (6), otherwise the
     iteration goes on with the overlapping pairs' planes refreshed.  While the row set keeps its
     labels the iterates are Anderson-accelerated (DOFs and planes together, ``_accelerated``).
@@ -211,7 +213,7 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
     labels: Hashable = None
     dx = np.zeros_like(x)
     refresh: float | None = None
-    tightened = tighten_tried = False
+    tightened = tighten_tried = confirmed = False
     steps: list[float] = []
     rescues: list[Rescue] = []
     build_s = solve_s = 0.0
@@ -241,10 +243,20 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
             x = x + dx
             pen = problem.penetration(x)
             if pen > c.penetration_tol:
-                refresh = c.penetration_tol
+                refresh, confirmed = c.penetration_tol, False
+                continue
+            if not confirmed:
+                # One more linearisation, with the rows as the step left them: a separating plane
+                # may swing about its hinge in a step that moves x by nothing, and the state is a
+                # fixed point only if the next step, with the plane where it swung, is small too.
+                confirmed = True
                 continue
             state = problem.state(x, step.answer, Progress(work, pen, build_s, solve_s, tightened))
             return LevelOutcome(LevelStatus.CONVERGED, state, None, tuple(rescues), solves)
+        if confirmed:
+            # Not a fixed point after all: the unaccelerated step breaks Anderson's history.
+            accel.reset()
+            confirmed = False
         steps.append(size)
         if c.tighten and not tighten_tried and _stalled(steps):
             tightened = tighten_tried = True

@@ -22,3 +22,106 @@ def test_split_stays_inside_the_bracket():
     assert _split(1.0, 1e-12, -1.0) == pytest.approx(0.01)
     assert _split(1.0, 1.0, -1e-12) == pytest.approx(0.99)
     assert np.isfinite(_split(1.0, 1e300, -1e-300))
+
+
+# The predictor and the bracket's start (puncture.md sec. 2, Step size; sec. 3).
+
+
+def _state(delta, q):
+    from qpscale.increment import Equilibrium
+
+    return Equilibrium(np.atleast_2d(np.asarray(q, dtype=float)), delta, 0.0, None, np.zeros(0), 1, 0.0)
+
+
+def _line(delta):
+    # A branch linear in the depth: the secant extrapolates it exactly.
+    return _state(delta, [[1.0 + 2.0 * delta, -3.0 * delta, 0.5, 0.1 * delta, 0.0]])
+
+
+def test_the_secant_predictor_is_exact_on_a_straight_branch():
+    from qpscale.continuation import predict
+
+    states = [_line(0.0), _line(0.1), _line(0.2)]
+    guess = predict(states, 0.4)
+    np.testing.assert_allclose(guess.q, _line(0.4).q, rtol=0, atol=1e-15)
+    assert guess.delta == 0.4
+
+
+def test_the_predictor_takes_a_base_of_at_least_half_the_step():
+    from qpscale.continuation import PREDICTOR_REACH, predict
+
+    # The last two states 6e-8 L apart (a resolved bracket), the error of each 1e-8: their secant
+    # over a step of 0.03 would extrapolate that error by 5e5.  The nearest base of at least
+    # step / PREDICTOR_REACH is taken instead, which is exact here despite the error.
+    noisy = _state(0.2 + 6e-8, _line(0.2 + 6e-8).q + 1e-8)
+    states = [_line(0.0), _line(0.1), _line(0.2), noisy]
+    guess = predict(states, 0.23)
+    assert PREDICTOR_REACH * (noisy.delta - 0.2) < 0.03 <= PREDICTOR_REACH * (noisy.delta - 0.1)
+    np.testing.assert_allclose(guess.q, _line(0.23).q, rtol=0, atol=1e-8 * (1 + 0.03 / 0.1) + 1e-15)
+    # With no such base the level starts from the last state.
+    assert predict(states[-2:], 0.23) is noisy
+
+
+def test_the_predictor_does_not_extrapolate_across_a_landing():
+    from qpscale.continuation import predict
+
+    # A jump's landing at the depth of the state before it, on another branch: the stretch from
+    # the landing on (``since``) has one state, so the level starts from it.
+    landing = _state(0.2, [[5.0, 5.0, 5.0, 5.0, 5.0]])
+    states = [_line(0.0), _line(0.1), _line(0.2), landing]
+    assert predict(states, 0.3, since=3) is landing
+    after = _state(0.25, landing.q + 0.5)
+    guess = predict([*states, after], 0.3, since=3)
+    np.testing.assert_allclose(guess.q, landing.q + 1.0, rtol=0, atol=1e-14)
+
+
+def test_a_level_inside_a_bracket_starts_between_its_two_states():
+    from qpscale.continuation import _between
+
+    a, b = _line(0.1), _line(0.3)
+    start = _between(a, b, 0.25)
+    np.testing.assert_allclose(start.q, _line(0.25).q, rtol=0, atol=1e-15)
+    assert start.delta == 0.25 and start.contacts is a.contacts
+
+
+def test_a_jump_is_located_coarsely_unless_it_is_the_failure():
+    from qpscale.continuation import JUMP_RESOLUTION, SNAP_RESOLUTION, _resolution
+
+    assert _resolution("snap", fine=False) == JUMP_RESOLUTION
+    assert _resolution("snap", fine=True) == SNAP_RESOLUTION
+    assert _resolution("unstable", fine=False) == SNAP_RESOLUTION
+    assert _resolution("failed", fine=False) == SNAP_RESOLUTION
+    assert SNAP_RESOLUTION < JUMP_RESOLUTION
+
+
+def test_a_push_that_comes_back_within_the_energies_resolution_is_no_branch():
+    # An unstable state pushed along its mode whose plain iteration returns to it (fuzz design
+    # 140: energy 6.8e-13 lower, against a resolution of 8.6e-7) is not confirmed; a landing whose
+    # energy is lower by more than the resolution is.  K = I: energy 1/2 |q|^2, |K q|_1 = |q|_1.
+    from qpscale.continuation import STATE_ERROR, Path, PathSettings, StateFunctions
+    from qpscale.increment import STEP_TOL
+    from qpscale.level import LevelOutcome, LevelStatus
+    from qpscale.stability import Stability
+
+    eq = _state(0.5, [[1.0, 0.0, 0.0, 0.0, 0.0]])
+    resolution = 2 * STATE_ERROR * STEP_TOL * 1.0
+
+    def path_landing_at(energy_drop):
+        landed = _state(0.5, [[np.sqrt(1.0 - 2.0 * energy_drop), 0.0, 0.0, 0.0, 0.0]])
+        functions = StateFunctions(
+            energy=lambda s: 0.5 * float(np.sum(s.q**2)),
+            force_norm=lambda s: float(np.abs(s.q).sum()),
+            tilt=lambda s: 0.0,
+            stability=lambda s: None,
+        )
+        settings = PathSettings(phi_c_deg=13.0, increments=16, max_increments=400, solver="test")
+        level = lambda start, delta, index, descent=False: LevelOutcome(LevelStatus.CONVERGED, landed)  # noqa: E731
+        return Path(level, functions, settings, eq)
+
+    sv = Stability(-1e-3, False, np.zeros((1, 5)), 0)
+    for drop, confirmed in ((1e-12, False), (0.5 * resolution, False), (10 * resolution, True)):
+        path = path_landing_at(drop)
+        landing = path.branch_off(eq, sv, sides=(1.0, -1.0))
+        assert (landing is not eq) is confirmed, drop
+    # A held path's bifurcation takes its one chosen side whenever it lowers the energy at all.
+    assert path_landing_at(1e-12).branch_off(eq, sv, sides=(1.0,), resolved=False) is not eq

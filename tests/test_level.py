@@ -302,3 +302,38 @@ def test_plain_iteration_fires_when_no_step_converges_and_the_path_keeps_Fc(alon
     kinds = [e.rescue for e in hurt.events if e.kind == "rescue"]
     assert kinds.count("plain_iteration") == 1 and kinds.count("halve_step") >= 10
     assert hurt.Fc_star == pytest.approx(clean.Fc_star, rel=1e-6)
+
+
+def test_a_converged_step_is_confirmed_by_the_next_linearisation():
+    # A step within the test whose rows moved (a plane swung about its hinge: the next
+    # linearisation steps 1e-4) is no fixed point; the level goes on until two steps in a row are
+    # within the test, and reports the second one's answer (formulations/increment.md sec. 4a).
+    from qpscale.level import LevelControls, Step, solve
+
+    class Swinging:
+        controls = LevelControls(
+            "fake", 0.1, 0, step_tol=1e-8, penetration_tol=1e-9, max_iter=20, anderson_depth=0
+        )
+
+        def __init__(self, sizes):
+            self.sizes, self.calls = list(sizes), 0
+
+        def linearise(self, x, rows, refresh):
+            return x
+
+        def solve(self, lin, tightened):
+            size = self.sizes[min(self.calls, len(self.sizes) - 1)]
+            self.calls += 1
+            return Step(answer=self.calls, dx=np.full(2, size), labels=0)
+
+        def penetration(self, x):
+            return 0.0
+
+        def state(self, x, answer, progress):
+            return answer
+
+    swinging = Swinging([1e-3, 1e-10, 1e-4, 1e-10, 1e-10, 1e-4])
+    outcome = solve(swinging, np.zeros(2))
+    assert outcome.converged and outcome.state == 5 and swinging.calls == 5
+    settled = Swinging([1e-3, 1e-10, 1e-10, 1e-4])
+    assert solve(settled, np.zeros(2)).state == 3
