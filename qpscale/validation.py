@@ -350,10 +350,11 @@ def puncture_time_s(n_scales: int, n_contact_pairs: int, probe: bool = True) -> 
     """An upper estimate of a puncture run's wall time on one core, seconds (substrate.md sec. 11).
 
     150 load levels at 4 ms per scale each (PIQP: measured 2.5-3.4 ms per scale per level in wall
-    time on the loaded development machine, 58-96 levels of 4-5 QPs each, 5x5 to 11x11); with the stability probe 80
-    states of the sparse test at 0.2 ms per unknown (measured 55 ms at 830 unknowns); and the final
-    check of F_c, DAQP's dense active-set solve, up to 1e-8 N^3 s (measured 3.1-6.7 s, 9.5-20 s and
-    114-125 s for N = 1221, 1865 and 2645: 1.5e-9 to 6.8e-9 N^3), N = 5 n_scales + 3 n_contact_pairs.
+    time on the loaded development machine, 58-96 levels of 4-5 QPs each, 5x5 to 11x11); with the
+    stability probe 80 states of the sparse test at 0.2 ms per unknown (measured 55 ms at 830
+    unknowns); and the final check of F_c, DAQP's dense active-set solve, up to 1e-8 N^3 s (measured
+    3.1-6.7 s, 9.5-20 s and 114-125 s for N = 1221, 1865 and 2645: 1.5e-9 to 6.8e-9 N^3),
+    N = 5 n_scales + 3 n_contact_pairs.
     Measured runs took up to 3.6 s, 14 s, 28 s, 49 s and 219 s (5x5 to 13x13, load 4-7 on two
     cores) against estimates of 21 s, 44 s, 86 s, 167 s and 329 s.
     """
