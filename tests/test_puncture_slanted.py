@@ -65,7 +65,7 @@ def test_a_step_after_a_landing_is_not_extrapolated_across_it():
     result = run_puncture(setup)
     assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"
-    assert result.qp_solves < 300
+    assert result.load_levels < 300
     work, balance = work_balance(setup, result)
     assert work == pytest.approx(balance, rel=2e-3)
 
@@ -128,7 +128,7 @@ def test_slanted_5x5_arrays_reach_phi_c_verified_and_balanced(name):
     setup = PunctureSetup(design=design, load_point=point)
     result = run_puncture(setup)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"
-    assert result.qp_solves < 400
+    assert result.load_levels < 400
     work, balance = work_balance(setup, result)
     failure = next(e for e in result.events if e.kind == "failure")
     if failure.by == "snap":
