@@ -439,18 +439,15 @@ class _SequentialQP:
             return step
         x, lam = np.asarray(res.x), np.asarray(res.z)
         theta = x[q.size :]
-        swing = 0.0
         if cs is not None and cs.planes is not None and len(theta):
             theta = _pinned_only(theta, cs, lam, violated=True, mirror=at.mirror)
-            swing = float(np.max(np.abs(theta), initial=0.0))
             cs = replace(cs, plane_memory=cs.planes.advanced(theta))
             if s.plane_damping:
                 self.damping.update(cs, theta, lam)
         F, residuals = float(np.asarray(res.y)[0]), dict(res.residuals or {})
         answer = Equilibrium(q, at.delta, F, cs, lam if cs is not None else np.zeros(0), 0, 0.0, residuals)
         labels = cs.labels if cs is not None else ()
-        dx = x[: q.size].reshape(q.shape)
-        return replace(step, answer=answer, dx=dx, rows=cs, labels=labels, swing=swing)
+        return replace(step, answer=answer, dx=x[: q.size].reshape(q.shape), rows=cs, labels=labels)
 
     def penetration(self, q: np.ndarray) -> float:
         return penetration(self.at.patch, q) if self.at.contact is not None else 0.0

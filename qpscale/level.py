@@ -147,9 +147,6 @@ class Step(Generic[S]):
         Iterations the step counts for (1 for a QP, the Newton steps of the penalty system).
     retried : str or None
         The first status of a QP answered only on its retry (``qp_retry``).
-    swing : float
-        The largest change of the separating planes' unknowns in the step (0 without planes): a
-        step within the test whose planes swung more than the test is confirmed (``solve``).
     """
 
     answer: S | None = None
@@ -160,7 +157,6 @@ class Step(Generic[S]):
     seconds: float = 0.0
     work: int = 1
     retried: str | None = None
-    swing: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -249,11 +245,10 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
             if pen > c.penetration_tol:
                 refresh, confirmed = c.penetration_tol, False
                 continue
-            if not confirmed and step.swing > c.step_tol:
+            if not confirmed:
                 # One more linearisation, with the rows as the step left them: a separating plane
                 # may swing about its hinge in a step that moves x by nothing, and the state is a
                 # fixed point only if the next step, with the plane where it swung, is small too.
-                # A step whose planes stayed within the test is a fixed point of both already.
                 confirmed = True
                 continue
             state = problem.state(x, step.answer, Progress(work, pen, build_s, solve_s, tightened))
