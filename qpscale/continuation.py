@@ -77,6 +77,11 @@ LOCATED_PER_STEP = 3
 # The secant predictor extrapolates over at most this many times its base (``predict``): the step
 # rule (S) grows the step by at most 2.
 PREDICTOR_REACH = 2.0
+# A held state is an equilibrium of the free problem when the free increment QP linearised at it
+# moves the DOFs by at most this (L): the held states of the corner-loaded 5x5 square, hexagon and
+# triangle move by at most 6e-9; fuzz design 866's held branch left the free problem's at 3e-5,
+# growing to 0.06 L (puncture.md sec. 4, "a held branch that stops being an equilibrium").
+HELD_FREE_TOL = 1e-6
 # A level that needed more sequential-QP iterations than this halves the next step.
 HARD_LEVEL = 30
 # The failure state's tilt must lie within this fraction of phi_c (issue #5: F_c at phi_c to 1e-6).
@@ -342,6 +347,24 @@ class Bifurcation(Exception):
         self.before, self.state, self.stability, self.step = before, state, stability, step
 
 
+class HeldBranchEnds(Exception):
+    """A held-symmetric path reached a state that is no equilibrium without the mirror constraints.
+
+    Attributes
+    ----------
+    before : list of Equilibrium
+        The held path's states up to the last one the free problem balances.
+    state : Equilibrium
+        The first held state it does not.
+    step : float
+        The step the path had, to resume with.
+    """
+
+    def __init__(self, before: list[Equilibrium], state: Equilibrium, step: float) -> None:
+        super().__init__("the held branch is no equilibrium of the free problem")
+        self.before, self.state, self.step = before, state, step
+
+
 class Path:
     """The continuation of one loading: the level solver, the functions of a state, the events.
 
@@ -408,6 +431,24 @@ class Path:
     def tilt_of(self, eq: Equilibrium) -> float:
         """Tilt of the loaded face (rad)."""
         return self.functions.tilt(eq)
+
+    def free_balanced(self, eq: Equilibrium) -> bool:
+        """Whether a held state is an equilibrium without the mirror constraints: the free
+        increment QP linearised at it (its planes as they are) moves the DOFs by at most
+        ``HELD_FREE_TOL``.  Only the sequential-QP level of a held path is tested; a free QP that
+        the backend cannot solve says nothing, and the state is kept (its level converged)."""
+        if self.mirror is None or not isinstance(self.level, SQPLevels) or eq.contacts is None:
+            return True
+        from .solvers import solve_qp
+
+        qp, _ = replace(self.level, mirror=None).increment_qp(eq)
+        self.qp_solves += 1
+        res = solve_qp(
+            qp, solver=self.level.settings.solver, accuracy=self.level.settings.accuracy, check=False
+        )
+        if not res.found or res.x is None:
+            return True
+        return float(np.max(np.abs(res.x[: eq.q.size]), initial=0.0)) <= HELD_FREE_TOL
 
     def origin(self) -> Equilibrium:
         """The unloaded state."""
@@ -689,6 +730,8 @@ class Path:
                 if moved == -1 and g_ceiling is not None:
                     g_ceiling /= 2
                 moved = -1
+            if not self.free_balanced(eq):
+                raise HeldBranchEnds(states, eq, resume if ceiling < np.inf else step)
             if self.tilt_of(eq) >= self.phi_c:
                 final = self.locate_failure(last, eq, len(states))
                 self.events.append(Failure("tilt", final.delta, self.settings.phi_c_deg))

@@ -135,3 +135,54 @@ def test_slanted_5x5_arrays_reach_phi_c_verified_and_balanced(name):
         # The curve ends before the snap that is the failure: its release is not part of it.
         balance -= [e for e in result.events if e.kind == "snap"][-1].energy_released
     assert work == pytest.approx(balance, rel=2e-3)
+
+
+# Design 866 of the same grid: a 3x3 square array slanted 66.6 deg towards 45 deg, loaded on its
+# diagonal.  Its held-symmetric branch stopped being an equilibrium of the free problem at
+# delta ~ 0.041 (the free QP at the held state moved q by 3e-5, then up to 0.06 L), and the path
+# failed from a held state whose F the exact check refused (2.2456 against 2.1850).
+UNBALANCED = (
+    Design(
+        shape="square",
+        tiling="arrayed",
+        slant_deg=66.60780118090628,
+        slant_dir_deg=45.0,
+        gap=0.048973355016570796,
+        thickness=0.6685760172022082,
+        rings=1,
+    ),
+    0.004443803583697337,
+    0.2973014572539302,
+    (2.0928797350873602, 2.0928797350873602),
+)
+
+
+def test_a_held_branch_ends_where_the_free_problem_no_longer_balances_it():
+    # Independent check: the free increment QP, solved exactly (DAQP) at every held state the path
+    # kept, moves q by at most HELD_FREE_TOL (before: 3e-5 to 0.06 L); and the final F_c is verified
+    # against the exact solution at the failure state.
+    from qpscale.certify import solve_exact
+    from qpscale.contact.symmetry import map_dofs
+    from qpscale.continuation import HELD_FREE_TOL
+    from qpscale.experiments.puncture import _load_point, build_model, mirror_through, puncture_path
+
+    design, coupling, nu, point = UNBALANCED
+    setup = PunctureSetup(
+        design=design, interaction="contact", coupling=coupling, nu=nu, load_point=point, increments=4
+    )
+    result = run_puncture(setup)
+    assert result.Fc_check is not None and result.Fc_check.status == "verified"
+    assert result.branch.branched and result.branch.min_eigenvalue is None  # not an instability
+    assert result.branch.delta_branch[1] < 0.05
+    patch, K = build_model(setup)
+    free = puncture_path(setup, patch, K, _load_point(patch, np.asarray(point)), check=False).level
+    M, perm = mirror_through(patch, np.asarray(point))
+    checked = 0
+    for state in result.states:
+        if state.contacts is None or np.max(np.abs(state.q - map_dofs(state.q, M, perm))) > 1e-9:
+            continue  # past the branch: a free state
+        exact = solve_exact(free.increment_qp(state)[0])
+        assert exact.certified
+        assert np.max(np.abs(exact.x[: state.q.size])) <= HELD_FREE_TOL
+        checked += 1
+    assert checked >= 3

@@ -24,6 +24,7 @@ from ..contact.symmetry import Mirror, map_dofs
 from ..continuation import (
     Bifurcation,
     BranchRecord,
+    HeldBranchEnds,
     LevelSolver,
     Path,
     PathSettings,
@@ -284,6 +285,23 @@ def _symmetric_point(
         return states, sym.events, count, BranchRecord("second variation", mirror=True), sym.level
     except Bifurcation as exc:
         lost = exc
+    except HeldBranchEnds as ended:
+        # The held branch stopped being an equilibrium of the free problem: the path goes on free
+        # from the last held state the free problem balances (puncture.md sec. 4).
+        free = puncture_path(setup, patch, K, load, check=True)
+        free.base_step = sym.base_step
+        free.smooth_from = len(ended.before)
+        states = free.run(list(ended.before), step=ended.step)
+        record = BranchRecord(
+            "second variation",
+            mirror=True,
+            branched=True,
+            delta_branch=(ended.before[-1].delta, ended.state.delta),
+            followed="asymmetric",
+            asymmetry_at_failure=_asymmetry(states[-1].q, M, perm),
+        )
+        count = (sym.solves + free.solves, sym.qp_solves + free.qp_solves)
+        return states, sym.events + free.events, count, record, free.level
     lo, hi, sv = lost.before[-1], lost.state, lost.stability
     free = puncture_path(setup, patch, K, load, check=True)
     free.base_step = sym.base_step  # the free branch continues the held path's step bounds
