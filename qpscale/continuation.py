@@ -39,6 +39,7 @@ from .errors import SolverFailure
 from .events import Branch, ContactChange, Event, Failure, Rescue, Snap
 from .geometry import tilt
 from .increment import STEP_TOL, Equilibrium, LevelOutcome, LoadPoint, PunctureLevel, SQPSettings
+from .level import qp_step
 from .multipliers import uniform_second_variation
 from .penalty import PenaltySettings, penalty_level
 from .qp import IncrementQP
@@ -436,17 +437,14 @@ class Path:
         """Whether a held state is an equilibrium without the mirror constraints: the free
         increment QP linearised at it (its planes as they are) moves the DOFs by at most
         ``HELD_FREE_TOL``.  Only the sequential-QP level of a held path is tested; a free QP that
-        the backend cannot solve says nothing, and the state is kept (its level converged)."""
+        the backend cannot solve says nothing (``level.qp_step``: no answer, whatever the backend
+        did), and the state is kept (its level converged)."""
         if self.mirror is None or not isinstance(self.level, SQPLevels) or eq.contacts is None:
             return True
-        from .solvers import solve_qp
-
         qp, _ = replace(self.level, mirror=None).increment_qp(eq)
         self.qp_solves += 1
-        res = solve_qp(
-            qp, solver=self.level.settings.solver, accuracy=self.level.settings.accuracy, check=False
-        )
-        if not res.found or res.x is None:
+        res, _ = qp_step(qp, self.level.settings.solver, self.level.settings.accuracy, False, None)
+        if res is None or res.x is None:
             return True
         return float(np.max(np.abs(res.x[: eq.q.size]), initial=0.0)) <= HELD_FREE_TOL
 

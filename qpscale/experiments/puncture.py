@@ -283,35 +283,27 @@ def _symmetric_point(
         states = sym.run()
         count = (sym.solves, sym.qp_solves)
         return states, sym.events, count, BranchRecord("second variation", mirror=True), sym.level
-    except Bifurcation as exc:
+    except (Bifurcation, HeldBranchEnds) as exc:
         lost = exc
-    except HeldBranchEnds as ended:
-        # The held branch stopped being an equilibrium of the free problem: the path goes on free
-        # from the last held state the free problem balances (puncture.md sec. 4).
-        free = puncture_path(setup, patch, K, load, check=True)
-        free.base_step = sym.base_step
-        free.smooth_from = len(ended.before)
-        states = free.run(list(ended.before), step=ended.step)
-        record = BranchRecord(
-            "second variation",
-            mirror=True,
-            branched=True,
-            delta_branch=(ended.before[-1].delta, ended.state.delta),
-            followed="asymmetric",
-            asymmetry_at_failure=_asymmetry(states[-1].q, M, perm),
-        )
-        count = (sym.solves + free.solves, sym.qp_solves + free.qp_solves)
-        return states, sym.events + free.events, count, record, free.level
-    lo, hi, sv = lost.before[-1], lost.state, lost.stability
     free = puncture_path(setup, patch, K, load, check=True)
     free.base_step = sym.base_step  # the free branch continues the held path's step bounds
-    states = free.switch(lost, sv.mode * _side(sv.mode[load.scale], M))
+    min_eigenvalue = None
+    if isinstance(lost, Bifurcation):
+        sv = lost.stability
+        states = free.switch(lost, sv.mode * _side(sv.mode[load.scale], M))
+        min_eigenvalue = sv.min_eigenvalue
+    else:
+        # The held branch stopped being an equilibrium of the free problem: no unstable mode to
+        # push along; the path goes on free from the last held state it balances (puncture.md
+        # sec. 4).
+        free.smooth_from = len(lost.before)
+        states = free.run(list(lost.before), step=lost.step)
     record = BranchRecord(
         "second variation",
         mirror=True,
         branched=True,
-        delta_branch=(lo.delta, hi.delta),
-        min_eigenvalue=sv.min_eigenvalue,
+        delta_branch=(lost.before[-1].delta, lost.state.delta),
+        min_eigenvalue=min_eigenvalue,
         followed="asymmetric",
         asymmetry_at_failure=_asymmetry(states[-1].q, M, perm),
     )
