@@ -401,11 +401,16 @@ def _cholmod() -> tuple[Any, Any]:
     return cvxopt, cholmod
 
 
+def _cvx(M: sp.spmatrix) -> Any:
+    """``M`` as a cvxopt sparse matrix."""
+    cvxopt, _ = _cholmod()
+    C = sp.coo_matrix(M)
+    return cvxopt.spmatrix(C.data, C.row.astype(int), C.col.astype(int), size=C.shape)
+
+
 def _lower(M: sp.spmatrix) -> Any:
     """The lower triangle of symmetric ``M`` as a cvxopt sparse matrix."""
-    cvxopt, _ = _cholmod()
-    C = sp.tril(M, format="coo")
-    return cvxopt.spmatrix(C.data, C.row.astype(int), C.col.astype(int), size=C.shape)
+    return _cvx(sp.tril(M))
 
 
 def _amd(pattern: sp.spmatrix) -> np.ndarray:
@@ -463,9 +468,10 @@ def condense(
     held = np.zeros(0, dtype=int) if held is None else np.asarray(held, dtype=int)
     if len(np.intersect1d(retained, held)) or len(np.unique(retained)) != len(retained):
         raise InvalidDesign("retained", "repeated or held DOFs", "distinct DOFs, none of them held")
-    condensed = np.setdiff1d(np.arange(n), np.r_[retained, held])
     bordered = np.r_[retained, held]
-    rows = sp.csr_matrix(Kg)[condensed]
+    condensed = np.setdiff1d(np.arange(n), bordered)
+    Kr = sp.csr_matrix(Kg)
+    rows = Kr[condensed]
     Kcc = sp.csc_matrix(rows[:, condensed])
     cvxopt, cholmod = _cholmod()
     A = _lower(Kcc)
@@ -475,11 +481,9 @@ def condense(
         cholmod.numeric(A, factor)
     except ArithmeticError as exc:  # not positive definite: a rigid mode not removed by supports or pins
         raise SolverFailure("cholmod", "singular membrane stiffness", detail=str(exc)) from exc
-    C = sp.csc_matrix(rows[:, bordered]).tocoo()
-    Y = cvxopt.spmatrix(C.data, C.row.astype(int), C.col.astype(int), size=C.shape)
-    Y = cholmod.spsolve(factor, cholmod.spsolve(factor, Y, sys=7), sys=4)
+    Y = cholmod.spsolve(factor, cholmod.spsolve(factor, _cvx(rows[:, bordered]), sys=7), sys=4)
     Ys = sp.csc_matrix((np.array(Y.V).ravel(), (np.array(Y.I).ravel(), np.array(Y.J).ravel())), shape=Y.size)
-    S_b = sp.csr_matrix(Kg)[bordered][:, bordered].toarray() - (Ys.T @ Ys).toarray()
+    S_b = Kr[bordered][:, bordered].toarray() - (Ys.T @ Ys).toarray()
     S_b = 0.5 * (S_b + S_b.T)
     if not np.all(np.isfinite(S_b)):
         raise SolverFailure("cholmod", "non-finite condensation")

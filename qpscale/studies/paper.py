@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from .engine import Engine
-from .paper_run import run_scene
+from .paper_run import SCENE_CLOCK, run_scene
 from .paper_scenes import Scene, paper_scenes
 
 MAX_WORKERS = 2
@@ -157,7 +157,6 @@ FINAL_FILES = ("results.csv", "results.parquet", "curves.json", "findings.md")
 
 def _fingerprint(scene: Scene, limit_s: float | None) -> str:
     from .. import __version__
-    from .paper_run import SCENE_CLOCK
 
     return json.dumps(
         {"scene": repr(scene), "limit_s": limit_s, "clock": SCENE_CLOCK, "version": __version__},
