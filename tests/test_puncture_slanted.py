@@ -35,6 +35,15 @@ LOOPED = {
 }
 
 
+def _as_drawn(case: tuple) -> PunctureSetup:
+    """The puncture set-up of a fuzz design ``(design, coupling, nu, load point)`` as the fuzz runs
+    it: contact interaction, four target increments."""
+    design, coupling, nu, point = case
+    return PunctureSetup(
+        design=design, interaction="contact", coupling=coupling, nu=nu, load_point=point, increments=4
+    )
+
+
 # Design 140 of the same grid (seed 1000): a 3x3 staggered triangle array that ran out of its 30
 # CPU-s.  A confirmed instability's landing lay 6e-8 L above the state before it, and the secant
 # of those two states, over the next step of 0.03 L, started the level in another basin; its
@@ -58,10 +67,7 @@ LEAPT = (
 def test_a_step_after_a_landing_is_not_extrapolated_across_it():
     # Measured: 134 levels, F_c* = 1.4264132405, verified against the exact active-set solution.
     # Independent checks: the exact F_c check and the conservation of work (as above).
-    design, coupling, nu, point = LEAPT
-    setup = PunctureSetup(
-        design=design, interaction="contact", coupling=coupling, nu=nu, load_point=point, increments=4
-    )
+    setup = _as_drawn(LEAPT)
     result = run_puncture(setup)
     assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"
@@ -78,10 +84,7 @@ def test_a_looping_event_location_now_reaches_phi_c_with_its_work_balanced(name)
     # levels.  Independent check, a conservation law: the load's work equals the stored energy at
     # failure plus the energy released at located snaps (the step control keeps the quadrature
     # error within 1e-3 of each step's work).
-    design, coupling, nu, point = LOOPED[name]
-    setup = PunctureSetup(
-        design=design, interaction="contact", coupling=coupling, nu=nu, load_point=point, increments=4
-    )
+    setup = _as_drawn(LOOPED[name])
     result = run_puncture(setup)
     assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"
@@ -166,10 +169,8 @@ def test_a_held_branch_ends_where_the_free_problem_no_longer_balances_it():
     from qpscale.continuation import HELD_FREE_TOL
     from qpscale.experiments.puncture import _load_point, build_model, mirror_through, puncture_path
 
-    design, coupling, nu, point = UNBALANCED
-    setup = PunctureSetup(
-        design=design, interaction="contact", coupling=coupling, nu=nu, load_point=point, increments=4
-    )
+    setup = _as_drawn(UNBALANCED)
+    point = setup.load_point
     result = run_puncture(setup)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"
     assert result.branch.branched and result.branch.min_eigenvalue is None  # not an instability
