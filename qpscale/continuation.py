@@ -5,7 +5,8 @@ secant predictor, the step rule (S), the energy balance (R) that locates jumps, 
 the landing by the plain iteration), sec. 3 (the failure state: tilt = phi_c located by Illinois
 regula falsi, or failure by a snap) and sec. 4 (the second-variation test of every state with
 qpscale/stability.py, the location of a loss of stability, branch switching along the unstable
-mode, and the held-symmetric branch left at a bifurcation).
+mode, and the held-symmetric branch left at a bifurcation or where the free problem no longer
+balances its states).
 
 A :class:`Path` is given
 
