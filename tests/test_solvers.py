@@ -304,6 +304,25 @@ def test_piqp_needs_its_iterative_refinement_on_held_symmetric_qps():
     assert np.max(np.abs(r.x[:125] - ref.x[:125])) <= 1e-8
 
 
+def test_piqp_aims_at_the_tolerance_itself_on_hinged_planes():
+    # A QP of the 5x5 dart array slanted 60 deg towards 90 deg (125 DOFs, 130 planes, 881 rows)
+    # on which the path stopped: asked for a tenth of the tolerance, PIQP's last iterations
+    # stagnate and it hits its iteration limit; at the tolerance it solves within our own
+    # residual check at 1e-9, and its DOFs are Clarabel's (an independent interior-point method)
+    # to 1e-8, the two answers' accuracy (each within 1e-9 residuals on a QP whose plane unknowns
+    # weigh 1e-6) (formulations/increment-qp.md table 1).
+    from qpscale.qp import accept, backend_options
+
+    qp = _stored_qp("slanted_dart_qp.npz")
+    tenth = {**backend_options("piqp", 1e-9), "eps_abs": 1e-10, "eps_duality_gap_abs": 1e-10}
+    assert accept(solvers._REGISTRY["piqp"](qp, tenth, None), 1e-9).status == "PIQP_MAX_ITER_REACHED"
+    r = solve_qp(qp, "piqp", "high")
+    assert not r.extras.get("retried") and max(r.residuals.values()) <= 1e-9
+    ref = solve_qp(qp, "clarabel", "high")
+    assert np.max(np.abs(r.x[:125] - ref.x[:125])) <= 1e-8
+    assert abs(r.y[0] - ref.y[0]) <= 1e-8 * abs(ref.y[0])
+
+
 def test_retry_keeps_the_benchmarks_per_method_settings(monkeypatch):
     # qpscale bench overrides the tolerance table per method (e.g. OSQP without polishing); the
     # second attempt must be the same method at a tighter tolerance, not the default settings.
