@@ -1,6 +1,6 @@
 """One load level: the sequential iteration shared by puncture, flexure and the penalty baseline.
 
-Implements formulations/increment.md sec. 4-5: linearise at the current iterate, solve the
+Implements formulations/increment.md sec. 4-5 and 4c: linearise at the current iterate, solve the
 linearised problem, update exactly, repeat until the step is below the step test (5), then accept
 only if the exact penetration passes (6); stall detection and its ``stall_tighten`` rescue, the
 Anderson acceleration of the DOFs and the separating planes together, and the outcome of the
@@ -36,6 +36,13 @@ STALL_TIGHTEN = 1e-2
 # A step this many times the last restarts Anderson's history (sec. 4, Acceleration): a mildly
 # expanding mode is what the extrapolation cures, a leap out of the smooth region is not.
 ANDERSON_GROWTH = 2.0
+# Relaxation of the step (sec. 4c): a step that turns back on the one before it, by its component
+# along it ``rho = dx_k . dx_(k-1) / |dx_(k-1)|^2`` below REVERSAL, marks a mode of the iteration
+# map with multiplier mu < 0 (an oscillation; below -1 it grows).  The step is then scaled by
+# omega / (1 - rho), the secant estimate that puts that mode's multiplier at zero, never below
+# MIN_RELAXATION, and stays so for the rest of the level.
+REVERSAL = -0.5
+MIN_RELAXATION = 1.0 / 16.0
 
 L = TypeVar("L")  # one linearisation of a level problem
 S = TypeVar("S")  # the converged state of a level
@@ -215,6 +222,7 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
     refresh: float | None = None
     tightened = tighten_tried = confirmed = False
     steps: list[float] = []
+    omega, last = 1.0, np.zeros(0)
     rescues: list[Rescue] = []
     build_s = solve_s = 0.0
     work = solves = 0
@@ -264,7 +272,8 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
         if step.labels != labels:
             accel.reset()
             labels = step.labels
-        x, rows = _accelerated(accel, x, dx, rows)
+        omega, last = relaxation(omega, dx, last), dx
+        x, rows = _accelerated(accel, x, dx, rows, omega)
     detail = f"last |dx| = {np.max(np.abs(dx), initial=0.0):.3g} after {c.max_iter} linearisations"
     failure = SolverFailure(c.solver, c.unconverged, c.increment, detail)
     return LevelOutcome(LevelStatus.NOT_CONVERGED, None, failure, tuple(rescues), solves)
@@ -293,6 +302,29 @@ def qp_step(
     return res, Step(seconds=res.build_s + res.solve_s, retried=retried)
 
 
+def relaxation(omega: float, dx: np.ndarray, last: np.ndarray) -> float:
+    """The step's relaxation after the step ``dx`` that followed ``last`` (sec. 4c).
+
+    With ``rho`` the component of ``dx`` along ``last`` (``dx . last / |last|^2``), a reversal
+    (``rho < REVERSAL``) lowers ``omega`` to ``omega / (1 - rho)``: for a linear map whose mode
+    along ``last`` has multiplier ``mu``, the relaxed iteration multiplies it by
+    ``rho = 1 - omega (1 - mu)``, and ``omega / (1 - rho) = 1 / (1 - mu)`` sends it to zero.
+    Never below ``MIN_RELAXATION``; never raised within a level.
+
+    >>> relaxation(1.0, np.array([-1.5]), np.array([1.0]))  # mu = -1.5: the optimal 1/2.5
+    0.4
+    >>> relaxation(1.0, np.array([0.9]), np.array([1.0]))  # a slow contraction: kept
+    1.0
+    """
+    if last.shape != dx.shape:
+        return omega
+    norm = float(np.vdot(last, last))
+    rho = float(np.vdot(dx, last)) / norm if norm > 0.0 else 0.0
+    if rho >= REVERSAL:
+        return omega
+    return max(MIN_RELAXATION, min(omega, omega / (1.0 - rho)))
+
+
 def _stalled(steps: list[float]) -> bool:
     """True when the last ``STALL_WINDOW`` steps, all below ``STALL_BAND``, did not halve the
     smallest step before them (sec. 4, "Stall on noise")."""
@@ -319,8 +351,9 @@ class Anderson:
         self.x.clear()
         self.f.clear()
 
-    def step(self, x: np.ndarray, f: np.ndarray) -> np.ndarray:
-        """Next iterate from the current one and its QP step.
+    def step(self, x: np.ndarray, f: np.ndarray, beta: float = 1.0) -> np.ndarray:
+        """Next iterate from the current one and its QP step, relaxed by ``beta`` (sec. 4c: the
+        mixing parameter of Anderson's method, ``x + beta f - (dX + beta dF) gamma``).
 
         Safeguards: a step more than ``ANDERSON_GROWTH`` times the last restarts the history with a
         plain step (the extrapolation had left the region where the map is smooth), and the least-squares
@@ -335,16 +368,16 @@ class Anderson:
             self.x.pop(0)
             self.f.pop(0)
         if len(self.f) < 2:
-            return x + f
+            return x + beta * f
         dF = np.diff(np.array(self.f), axis=0).T
-        dG = np.diff(np.array(self.x) + np.array(self.f), axis=0).T
+        dG = np.diff(np.array(self.x) + beta * np.array(self.f), axis=0).T
         mu = 1e-4 * float(f @ f)
         gamma = np.linalg.solve(dF.T @ dF + mu * np.eye(dF.shape[1]), dF.T @ f)
-        return x + f - dG @ gamma
+        return x + beta * f - dG @ gamma
 
 
 def _accelerated(
-    accel: Anderson, q: np.ndarray, dq: np.ndarray, cs: ContactSet | None
+    accel: Anderson, q: np.ndarray, dq: np.ndarray, cs: ContactSet | None, omega: float = 1.0
 ) -> tuple[np.ndarray, ContactSet | None]:
     """Anderson step of the joint fixed-point map of the DOFs and the separating planes (sec. 4).
 
@@ -353,7 +386,7 @@ def _accelerated(
     pair an extrapolated configuration with a lagging certificate.
     """
     if cs is None or cs.planes is None or not cs.planes.count:
-        return accel.step(q.reshape(-1), dq.reshape(-1)).reshape(q.shape), cs
+        return accel.step(q.reshape(-1), dq.reshape(-1), omega).reshape(q.shape), cs
     keys = cs.planes.keys
     x_pl = np.hstack([cs.planes.normal, cs.planes.point]).ravel()
     new = cs.plane_memory
@@ -361,7 +394,7 @@ def _accelerated(
     if new:
         moved = [new[k] for k in keys]
         f_pl = np.hstack([[m[0] for m in moved], [m[1] for m in moved]]).ravel() - x_pl
-    z = accel.step(np.r_[q.reshape(-1), x_pl], np.r_[dq.reshape(-1), f_pl])
+    z = accel.step(np.r_[q.reshape(-1), x_pl], np.r_[dq.reshape(-1), f_pl], omega)
     planes = z[q.size :].reshape(-1, 6)
     normals = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
     memory = {k: (normals[j], planes[j, 3:]) for j, k in enumerate(keys)}

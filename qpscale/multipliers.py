@@ -139,7 +139,10 @@ def multiplier_set(qp: IncrementQP, force_scale: float) -> MultiplierSet:
         w0 = np.r_[x[:k], x[k] - x[k + 1]]
         residual = float(np.abs(B @ w0 - r).max(initial=0.0))
         scale = max(force_scale, float(np.max(w0[:k], initial=0.0)), 1e-12)  # sets the LPs' box too
-        if residual <= BALANCED * scale:
+        # balanced relative to the state's own forces, not the caller's scale: the rows near
+        # enough to be read must not depend on the scale (a state with a loaded row 2e-7 L from
+        # contact balanced "within 1e-7 of 3" without it, "within 1e-7 of 1" only with it)
+        if residual <= BALANCED * max(float(np.abs(w0).max(initial=0.0)), 1e-12):
             break
     # a force no larger than the state's own imbalance is noise, not support
     tol, cap, bound = max(SUPPORT * scale, NOISE * residual), 1e-3 * scale, BOX * scale

@@ -337,3 +337,63 @@ def test_a_converged_step_is_confirmed_by_the_next_linearisation():
     assert outcome.converged and outcome.state == 5 and swinging.calls == 5
     settled = Swinging([1e-3, 1e-10, 1e-10, 1e-4])
     assert solve(settled, np.zeros(2)).state == 3
+
+
+def test_relaxation_turns_an_expanding_oscillation_into_convergence():
+    # The plain map x + f(x), f = (M - I)(x - x*), with multipliers mu = -1.4 and 0.3: mu < -1
+    # makes the plain iteration oscillate with growing amplitude; the relaxed one (increment.md
+    # sec. 4c) reaches the fixed point x*, an analytic value, and keeps omega = 1 on a contraction.
+    from qpscale.level import MIN_RELAXATION, relaxation
+
+    Q = np.array([[0.8, -0.6], [0.6, 0.8]])
+    M = Q @ np.diag([-1.4, 0.3]) @ Q.T
+    x_star = np.array([0.3, -0.2])
+
+    def iterate(relax: bool) -> tuple[np.ndarray, float]:
+        x, omega, last = np.zeros(2), 1.0, np.zeros(0)
+        for _ in range(60):
+            f = (M - np.eye(2)) @ (x - x_star)
+            if relax:
+                omega, last = relaxation(omega, f, last), f
+            x = x + omega * f
+        return x, omega
+
+    plain, _ = iterate(False)
+    relaxed, omega = iterate(True)
+    assert np.linalg.norm(plain - x_star) > 1e3  # 1.4^60
+    assert np.linalg.norm(relaxed - x_star) < 1e-12
+    assert MIN_RELAXATION <= omega < 2.0 / (1.0 + 1.4)
+    assert relaxation(1.0, 0.7 * np.ones(3), np.ones(3)) == 1.0
+
+
+def test_a_level_whose_plain_iteration_oscillated_reaches_phi_c():
+    # Fuzz design 728 (seed 1000): just before a snap, the plain iteration's steps alternated in
+    # sign and grew by 1.3 per linearisation, and the path failed with "sequential QP did not
+    # converge" after 3000 of them.  Relaxed, it converges.  Independent checks: F_c against the
+    # exact active-set solution of its QP (certify), and the conservation of work (the load's work
+    # equals the stored energy plus the energy released at located snaps, 2e-3 as the step
+    # control's quadrature allows).
+    from .cases import work_balance
+
+    design = Design(
+        shape="hexagon",
+        tiling="honeycomb",
+        slant_deg=42.410262265816264,
+        slant_dir_deg=90.0,
+        gap=0.021913496328545848,
+        thickness=1.1837857467261668,
+        rings=1,
+    )
+    setup = PunctureSetup(
+        design=design,
+        interaction="contact",
+        coupling=0.3004843169336624,
+        nu=0.431109960841221,
+        load_point=(1.0745699318235415, 0.4609305697627917),
+        increments=4,
+    )
+    result = run_puncture(setup)
+    assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
+    assert result.Fc_check is not None and result.Fc_check.status == "verified"
+    work, balance = work_balance(setup, result)
+    assert work == pytest.approx(balance, rel=2e-3)
