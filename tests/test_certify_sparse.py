@@ -132,16 +132,17 @@ def test_a_solve_stopped_early_is_not_certified(default_final, monkeypatch):
 
 
 def test_the_method_is_picked_by_size(default_final):
-    qp, _, _ = default_final  # 341 unknowns
-    assert certify._methods(qp, "auto") == ("sparse", "dense")
-    small = IncrementQP(P=sp.identity(2, format="csc"), q=np.zeros(2))
-    assert certify._methods(small, "auto") == ("dense", "sparse")
+    qp, _, _ = default_final  # 341 unknowns: DAQP first
+    assert certify._methods(qp, "auto") == ("dense", "sparse")
+    n = certify.SPARSE_FROM
+    mid = IncrementQP(P=sp.identity(n, format="csc"), q=np.zeros(n))
+    assert certify._methods(mid, "auto") == ("sparse", "dense")
     n = certify.DENSE_UP_TO + 1
     big = IncrementQP(P=sp.identity(n, format="csc"), q=np.zeros(n))
     assert certify._methods(big, "auto") == ("sparse",)
     assert certify._methods(big, "dense") == ("dense",)
     with pytest.raises(InvalidDesign, match="method"):
-        certify._methods(small, "exact")
+        certify._methods(qp, "exact")
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -166,3 +167,11 @@ def test_the_line_search_is_the_minimiser_along_the_line(seed):
         lo, hi = max(0.0, best - step), best + step
     assert t == pytest.approx(best, abs=1e-6)
     assert phi(t) <= phi(best) + 1e-12
+
+
+def test_the_cost_estimate_counts_the_dense_solve_where_the_check_may_run_it():
+    # validation.py keeps its own copy of DENSE_UP_TO (the CLI validates before importing scipy);
+    # the copies must agree, or a patch the check runs densely would be estimated sparse.
+    from qpscale import validation
+
+    assert validation.DENSE_CHECK_UP_TO == certify.DENSE_UP_TO
