@@ -137,10 +137,12 @@ def solve_sparse(
     delta: float = DELTA,
     delta0: float = DELTA0,
     tol: float = STOP_TOL,
+    max_outer: int | None = None,
 ) -> SparseSolution:
     """``qp`` solved by the proximal method of multipliers with exact semismooth Newton inner
     minimisations (module docstring), from ``(x0, z0, y0)`` (default zero).
 
+    ``max_outer``: the outer steps allowed (default ``MAX_OUTER``).
     ``working``: a guess of the inequality rows in contact; the first Newton step solves the KKT
     system of these rows (and the equality rows) instead of those the start point selects.
     Stops when an outer step leaves the rows carrying force unchanged, moves no coordinate of
@@ -175,7 +177,6 @@ def solve_sparse(
     kkt = _KKT(P, C, delta)
     newton = 0
     prev_set: bytes | None = None
-    status = f"outer iteration limit {MAX_OUTER}"
     converged = False
     outer = 0
 
@@ -191,7 +192,9 @@ def solve_sparse(
         return float(0.5 * x @ (P @ x) + q @ x + pos @ pos / (2.0 * delta))
 
     S = None if working is None else np.r_[eq, p + np.unique(np.asarray(working, dtype=int))]
-    for outer in range(1, MAX_OUTER + 1):
+    limit = MAX_OUTER if max_outer is None else max_outer
+    status = f"outer iteration limit {limit}"
+    for outer in range(1, limit + 1):
         # inner: minimise phi(x) for the fixed multipliers lam.  A Newton step's point is the
         # minimiser of phi when the bracket is positive on the same rows there (phi is convex and
         # its gradient agrees with the piece's) up to rows whose bracket is rounding; else an
@@ -201,7 +204,12 @@ def solve_sparse(
             S = bracket(x)[1]
         forced = outer == 1 and working is not None
         for _ in range(MAX_NEWTON):
-            sol = kkt.solve(S, np.r_[-q, d[S] - delta * lam[S]])
+            try:
+                sol = kkt.solve(S, np.r_[-q, d[S] - delta * lam[S]])
+            except RuntimeError as exc:  # qdldl: a pivot of the wrong sign (rounding)
+                return SparseSolution(
+                    x, lam[p:], lam[:p], False, f"factorisation: {exc}", outer, newton, kkt.count
+                )
             newton += 1
             r_full, S_full, noise = bracket(sol[:n])
             differ = np.setxor1d(S, S_full)

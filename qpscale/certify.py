@@ -45,13 +45,15 @@ LP_OPTIONS = {"presolve": False, "primal_feasibility_tolerance": 1e-10, "dual_fe
 RANGE_SLACK = 1e-10
 # Methods by size (N unknowns), measured on the corner-loaded squares' final QPs, the whole check
 # (solve, certificate and the range's LPs, one thread; sec. 8): DAQP below SPARSE_FROM, where it is
-# as fast (0.005 s against 0.025 s at N = 105, 0.096 s against 0.10 s at N = 341, 0.20 s each at
-# N = 713; then 2.8 s against 0.28 s at N = 1221), the sparse solve from there on.  Either one's
-# failure is retried by the other: the sparse solve always, DAQP only up to DENSE_UP_TO unknowns
-# (it holds ~24 N^2 bytes and takes up to 1e-8 N^3 s: 54 MB and 34 s at N = 1500).
-SPARSE_FROM = 700
+# as fast (0.005 s against 0.007 s at N = 105; then 0.096 s against 0.018 s at N = 341, 2.8 s
+# against 0.056 s at N = 1221), the sparse solve from there on.  Either one's failure is retried
+# by the other: the sparse solve always, DAQP only up to DENSE_UP_TO unknowns (it holds ~24 N^2
+# bytes and takes up to 1e-8 N^3 s: 54 MB and 34 s at N = 1500).
+SPARSE_FROM = 200
 DENSE_UP_TO = 1500
 METHODS = ("auto", "dense", "sparse")
+# Outer steps of the sparse solve from PIQP's answer before it starts again from zero (sec. 8).
+WARM_OUTER = 100
 # The force of a converged state and the exact one agree when within this fraction of |F|
 # (the path's F_c is located to 1e-6, formulations/puncture.md sec. 3).
 FORCE_RTOL = 1e-6
@@ -151,15 +153,17 @@ def _solve_sparse(qp: IncrementQP) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 
     Started from PIQP's answer at "high" accuracy, at the final delta: on the 13x13 QP PIQP takes
     0.10 s and the solve from its answer 0.03 s (7 Newton steps), against 0.66 s (176) from zero.
-    Where PIQP finds no answer, or the solve from it does not converge, it starts from zero, with
-    the soft first steps that make any start converge (sec. 8).
+    Where PIQP finds no answer, or the solve from it does not converge in ``WARM_OUTER`` outer
+    steps (the 17x17 QP: a slow direction that 1000 steps from PIQP's multipliers did not
+    resolve, 149 from zero did), it starts from zero, with the soft first steps that make any
+    start converge (sec. 8).
     """
     from .active_set import DELTA
     from .solvers import solve_qp
 
     guess = solve_qp(qp, "piqp", "high", check=False)
     if guess.found and guess.x is not None and guess.z is not None and guess.y is not None:
-        s = solve_sparse(qp, guess.x, guess.z, guess.y, delta0=DELTA)
+        s = solve_sparse(qp, guess.x, guess.z, guess.y, delta0=DELTA, max_outer=WARM_OUTER)
         if s.converged:
             return s.x, s.z, s.y, ""
     s = solve_sparse(qp)

@@ -63,7 +63,7 @@ def test_a_hinge_qp_that_daqp_cannot_certify_says_so_and_the_sparse_solve_certif
     check = check_force(qp, float(r.y[0]), 125, method="dense")
     assert check.status == "unverified" and check.detail == ex.status
     assert np.isnan(check.F_exact).all() and np.isnan(check.dq_exact)
-    sparse = solve_exact(qp)  # 521 unknowns: DAQP first, the sparse solve after its failure
+    sparse = solve_exact(qp)  # 521 unknowns: the sparse solve first
     assert sparse.certified and sparse.method == "sparse", sparse.status
     assert check_force(qp, float(r.y[0]), 125).status == "verified"
 

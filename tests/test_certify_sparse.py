@@ -122,21 +122,22 @@ def test_an_infeasible_qp_is_not_certified(G, h, A, b):
 
 
 def test_a_solve_stopped_early_is_not_certified(default_final, monkeypatch):
-    # One outer step at the softest delta is far from the answer: the certificate fails on a
-    # residual (or the iteration limit), and the check says unverified, with no exact number.
+    # One outer step cannot see the rows settle: the solve stops at its iteration limit (from
+    # PIQP's answer, then from zero), and the check says unverified, with no exact number.
     qp, F, n_dof = default_final
     monkeypatch.setattr(active_set, "MAX_OUTER", 1)
+    monkeypatch.setattr(certify, "WARM_OUTER", 1)  # the start from PIQP's answer too
     check = check_force(qp, F, n_dof, "sparse")
     assert check.status == "unverified" and check.detail == "sparse active set: outer iteration limit 1"
     assert np.isnan(check.F_exact).all()
 
 
 def test_the_method_is_picked_by_size(default_final):
-    qp, _, _ = default_final  # 341 unknowns: DAQP first
-    assert certify._methods(qp, "auto") == ("dense", "sparse")
-    n = certify.SPARSE_FROM
-    mid = IncrementQP(P=sp.identity(n, format="csc"), q=np.zeros(n))
-    assert certify._methods(mid, "auto") == ("sparse", "dense")
+    qp, _, _ = default_final  # 341 unknowns: the sparse solve first, DAQP after its failure
+    assert certify._methods(qp, "auto") == ("sparse", "dense")
+    n = certify.SPARSE_FROM - 1
+    below = IncrementQP(P=sp.identity(n, format="csc"), q=np.zeros(n))
+    assert certify._methods(below, "auto") == ("dense", "sparse")
     n = certify.DENSE_UP_TO + 1
     big = IncrementQP(P=sp.identity(n, format="csc"), q=np.zeros(n))
     assert certify._methods(big, "auto") == ("sparse",)
@@ -175,3 +176,16 @@ def test_the_cost_estimate_counts_the_dense_solve_where_the_check_may_run_it():
     from qpscale import validation
 
     assert validation.DENSE_CHECK_UP_TO == certify.DENSE_UP_TO
+
+
+def test_a_failed_factorisation_is_a_status_not_an_exception(default_final, monkeypatch):
+    # qdldl refuses a matrix whose pivots come out of the wrong sign; the check reports it.
+    qp, F, n_dof = default_final
+
+    def refuse(self, S, rhs):
+        raise RuntimeError("Input matrix is not quasi-definite")
+
+    monkeypatch.setattr(active_set._KKT, "solve", refuse)
+    check = check_force(qp, F, n_dof, "sparse")
+    assert check.status == "unverified" and "factorisation" in check.detail
+    assert np.isnan(check.F_exact).all()
