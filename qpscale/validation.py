@@ -302,11 +302,12 @@ DENSE_CHECK_UP_TO = 1500
 
 
 def _check_memory_gb(N: int, n_contact_pairs: int) -> float:
-    """The F_c check's memory above the path's, GB: the sparse solve's KKT factors and LPs, 5 kB per
-    unknown (measured 2.5 kB: peaks 1.7, 4.2, 6.9 and 11.5 MB at N = 341, 1221, 2645 and 4613);
-    up to DENSE_CHECK_UP_TO unknowns also DAQP's dense P and rows, 24 (N^2 + 8 pairs N) bytes."""
+    """The F_c check's memory above the path's, GB: the sparse solve's KKT factors, PIQP's start and
+    the LPs, 10 kB per unknown (measured 3.7-4.2 kB: peaks 1.4, 4.5, 9.6, 19.5 and 26.7 MB at
+    N = 341, 1221, 2645, 4613 and 7125); up to DENSE_CHECK_UP_TO unknowns also DAQP's dense P and
+    rows, 24 (N^2 + 8 pairs N) bytes."""
     dense = 24.0 * (float(N) * N + 8.0 * n_contact_pairs * N) if N <= DENSE_CHECK_UP_TO else 0.0
-    return (5e3 * N + dense) / 1e9
+    return (1e4 * N + dense) / 1e9
 
 
 def puncture_memory_gb(n_scales: int, n_contact_pairs: int) -> float:
@@ -316,10 +317,10 @@ def puncture_memory_gb(n_scales: int, n_contact_pairs: int) -> float:
     and the mirror map are sparse (stability.md sec. 8), 1 MB per scale as an upper bound (the path
     peaked 0.07 GB above the interpreter on the 11x11 patch, 0.6 MB per scale), plus 0.3 GB for the
     interpreter and the libraries.  The final check of F_c (certify.solve_exact) is sparse from
-    certify.SPARSE_FROM = 700 unknowns on (N = 5 n_scales + 3 n_contact_pairs; measured 2.5 kB per
-    unknown, estimated 5 kB); DAQP's dense solve, 24 (N^2 + 8 pairs N) bytes (it raised the peak by
-    74 MB at N = 1221, estimate 100 MB, and by 358 MB at N = 2645), is counted only up to 1500
-    unknowns, where the check may run it.
+    certify.SPARSE_FROM = 200 unknowns on (N = 5 n_scales + 3 n_contact_pairs; measured up to 4.2 kB
+    per unknown, estimated 10 kB); DAQP's dense solve, 24 (N^2 + 8 pairs N) bytes (it raised the
+    peak by 75 MB at N = 1221, estimate 100 MB, and by 357 MB at N = 2645), is counted only up to
+    1500 unknowns, where the check may run it.
     """
     N = _check_unknowns(n_scales, n_contact_pairs)
     return 0.3 + 1e-3 * n_scales + _check_memory_gb(N, n_contact_pairs)
@@ -364,13 +365,14 @@ def puncture_time_s(n_scales: int, n_contact_pairs: int, probe: bool = True) -> 
     time on the loaded development machine, 58-96 levels of 4-5 QPs each, 5x5 to 11x11); with the
     stability probe 80 states of the sparse test at 0.2 ms per unknown (measured 55 ms at 830
     unknowns); and the final check of F_c in N = 5 n_scales + 3 n_contact_pairs unknowns: the
-    sparse exact solve and the range's LPs, 2 ms per unknown (measured 0.4-0.6 ms: 0.19 s, 0.58 s,
-    1.4 s and 2.7 s for N = 341, 1221, 2645 and 4613), plus DAQP's dense solve, up to 1e-8 N^3 s,
-    where the check may run it (N <= 1500; measured 6.2 s at N = 1221, and 50-125 s at N = 2645
-    before the sparse solve replaced it there).
+    sparse exact solve and the range's LPs, 2 ms per unknown (measured 0.05-0.36 ms: 0.018 s,
+    0.056 s, 0.13 s, 1.7 s and 0.54 s for N = 341, 1221, 2645, 4613 and 7125), plus DAQP's dense
+    solve, up to 1e-8 N^3 s, where the check may run it (N <= 1500; measured 2.8-6.2 s at
+    N = 1221, and 21-125 s at N = 2645 before the sparse solve replaced it there).
     Measured runs took up to 3.6 s, 14 s, 28 s and 49 s (5x5 to 11x11, load 4-7 on two cores,
-    with the dense check: 20 s of the 49 s) and 102 s (13x13 with the sparse check, 1.1 s of it;
-    219 s with the dense one) against estimates of 22 s, 46 s, 89 s, 106 s and 149 s.
+    with the dense check: 20 s of the 49 s) and 102 s (13x13 with the sparse check, 1.1 s of it
+    from zero, 0.09 s from PIQP's start in an 81 s run; 219 s with the dense one) against
+    estimates of 22 s, 46 s, 89 s, 106 s and 149 s.
     """
     N = _check_unknowns(n_scales, n_contact_pairs)
     qp = 150 * 0.004 * n_scales

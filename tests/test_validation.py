@@ -233,18 +233,18 @@ def test_slant_close_to_90_is_refused_with_its_range(no_work):
 def test_memory_estimate_by_hand_and_refusal(no_work):
     # 5x5 squares: 25 scales and 72 contact pairs (20 + 20 edge neighbours, 32 diagonal), so the
     # F_c check's QP has N = 5*25 + 3*72 = 341 unknowns: up to 1500 unknowns the check may run
-    # DAQP's dense solve, 24 (N^2 + 8*72 N) bytes, besides the sparse one's 5 kB per unknown; above
-    # the 0.3 GB floor and 1 MB per scale for the sparse path.
-    check = (24 * (341**2 + 8 * 72 * 341) + 5e3 * 341) / 1e9
+    # DAQP's dense solve, 24 (N^2 + 8*72 N) bytes, besides the sparse one's 10 kB per unknown;
+    # above the 0.3 GB floor and 1 MB per scale for the sparse path.
+    check = (24 * (341**2 + 8 * 72 * 341) + 1e4 * 341) / 1e9
     assert v.puncture_memory_gb(25, 72) == pytest.approx(0.3 + 0.025 + check, rel=1e-12)
-    # 17x17 (4613 unknowns): sparse check only, 5e3 * 4613 bytes
-    assert v.puncture_memory_gb(289, 1056) == pytest.approx(0.3 + 0.289 + 5e3 * 4613 / 1e9, rel=1e-12)
-    result = run("puncture", "--rings", "30")  # 3721 scales: 4.3 GB, 3.7 of them the path's bound
+    # 17x17 (4613 unknowns): sparse check only, 1e4 * 4613 bytes
+    assert v.puncture_memory_gb(289, 1056) == pytest.approx(0.3 + 0.289 + 1e4 * 4613 / 1e9, rel=1e-12)
+    result = run("puncture", "--rings", "30")  # 3721 scales: 4.6 GB, 3.7 of them the path's bound
     assert result.exit_code == 2
     line = one_error_line(result)
     assert line.startswith("error: --rings:") and "--max-memory-gb" in line
-    result = run("puncture", "--rings", "8", "--max-memory-gb", "0.5")  # ~0.61 GB
-    assert result.exit_code == 2 and "0.612 GB" in one_error_line(result)
+    result = run("puncture", "--rings", "8", "--max-memory-gb", "0.5")  # ~0.64 GB
+    assert result.exit_code == 2 and "0.635 GB" in one_error_line(result)
 
 
 def test_memory_limit_from_the_environment(no_work, monkeypatch):
