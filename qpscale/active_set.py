@@ -6,13 +6,15 @@ proximal method of multipliers: for fixed multipliers ``(y_, z_)`` the piecewise
 
     phi(x) = 1/2 x'Px + q'x + |Ax - b + delta y_|^2 / (2 delta) + |[Gx - h + delta z_]_+|^2 / (2 delta)
 
-is minimised exactly (semismooth Newton steps with an exact line search; each step is the KKT
-system of the rows where the bracket is positive, quasi-definite, so a sparse LDL' factorisation
-without pivoting exists whatever the rows' rank), then ``y_ += (Ax - b)/delta`` and
-``z_ = [z_ + (Gx - h)/delta]_+``.  With the active set fixed, an outer step is one step of
-iterative refinement of the regularised KKT system towards the unregularised one, so the answer
-is exact up to rounding once the set settles, like a primal active-set method's, but dependent
-rows (a hinged plane) only leave the multipliers non-unique, never the factorisation singular.
+is minimised exactly (semismooth Newton steps: full where they lower phi, else with an exact line
+search; each step is the KKT system of the rows where the bracket is positive, quasi-definite, so
+a sparse LDL' factorisation without pivoting exists whatever the rows' rank), then
+``y_ += (Ax - b)/delta`` and ``z_ = [z_ + (Gx - h)/delta]_+`` (read from the KKT solve).  delta
+starts soft and falls to DELTA; the loop stops where the certificate will pass with a margin.
+With the active set fixed, an outer step is one step of iterative refinement of the regularised
+KKT system towards the unregularised one, so the answer is exact up to rounding once the set
+settles, like a primal active-set method's, but dependent rows (a hinged plane) only leave the
+multipliers non-unique, never the factorisation singular.
 The caller certifies the answer with its own residuals (``certify.solve_exact``).
 """
 
@@ -54,9 +56,12 @@ MAX_NEWTON = 100
 class SparseSolution:
     """The answer of :func:`solve_sparse` before certification.
 
-    ``converged``: the last outer step changed neither the active set nor, beyond rounding, the
-    point (``status`` says which limit stopped it otherwise).  ``factorisations``: sparse LDL'
-    factorisations made (one per distinct active set met).
+    ``converged``: the rows carrying force held over the last outer step, at the final delta, and
+    no row is violated, nor a row carrying force open, by more than the stopping tolerance
+    (``status`` says which iteration limit, or the factorisation's failure, stopped it otherwise).
+    ``outer``, ``newton``: the steps taken; ``factorisations``: sparse LDL' factorisations made
+    (one per distinct set of rows and delta met in a row).  ``z >= 0``, zero off the rows that
+    carry force.
     """
 
     x: np.ndarray

@@ -25,7 +25,7 @@ import scipy.sparse as sp
 from scipy.optimize import linprog
 
 from .active_set import solve_sparse
-from .errors import InvalidDesign
+from .errors import InvalidDesign, QpscaleError
 from .qp import IncrementQP
 
 # Certification at round-off: row violation (L), balance (force units, F* = O(1)), and the
@@ -37,8 +37,8 @@ DAQP_TOL = 1e-13
 # Iterations without progress before DAQP declares cycling (its default 10 stopped degenerate
 # plane-formulation QPs that 154 iterations solve; the iteration limit still bounds the work).
 CYCLE_TOL = 1000
-# HiGHS for the multiplier range: its presolve declared the (feasible: DAQP's multipliers satisfy
-# it) degenerate system infeasible, and its default feasibility tolerance 1e-7 would widen the range.
+# HiGHS for the multiplier range: its presolve declared the (feasible: the method's multipliers
+# satisfy it) degenerate system infeasible, and its default feasibility tolerance 1e-7 would widen the range.
 LP_OPTIONS = {"presolve": False, "primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10}
 # Balance slack of the multiplier range's LPs (force units): at 1e-11 HiGHS stopped with an
 # unknown status on a feasible set; 1e-10 widens the range by ~3e-10 (measured), far below FORCE_RTOL.
@@ -161,8 +161,17 @@ def _solve_sparse(qp: IncrementQP) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     from .active_set import DELTA
     from .solvers import solve_qp
 
-    guess = solve_qp(qp, "piqp", "high", check=False)
-    if guess.found and guess.x is not None and guess.z is not None and guess.y is not None:
+    try:
+        guess = solve_qp(qp, "piqp", "high", check=False)
+    except QpscaleError:  # PIQP missing or broken: the start from zero needs no guess
+        guess = None
+    if (
+        guess is not None
+        and guess.found
+        and guess.x is not None
+        and guess.z is not None
+        and guess.y is not None
+    ):
         s = solve_sparse(qp, guess.x, guess.z, guess.y, delta0=DELTA, max_outer=WARM_OUTER)
         if s.converged:
             return s.x, s.z, s.y, ""
