@@ -47,6 +47,18 @@ def test_sparse_and_dense_agree_on_the_default_scene(default_final):
         assert check.dq_exact <= 1e-7
 
 
+def test_sparse_and_dense_agree_on_a_held_qp():
+    # A QP of a path held mirror-symmetric (tests/data/held_square_qp.npz: 341 unknowns, 448
+    # contact rows and 173 equality rows, the loading row and the symmetry's): the equality rows
+    # sit in every KKT system, dependent or not.  Same tolerances as on the default scene.
+    qp = _stored_qp("held_square_qp.npz")
+    dense = solve_exact(qp, ranged=[0], method="dense")
+    sparse = solve_exact(qp, ranged=[0], method="sparse")
+    assert dense.certified and sparse.certified, (dense.status, sparse.status)
+    assert np.abs(sparse.x - dense.x).max() <= 1e-10
+    assert np.abs(sparse.y_range[0] - dense.y_range[0]).max() <= 1e-9
+
+
 @pytest.mark.parametrize("guess", ["empty", "all"])
 def test_a_wrong_guess_of_the_contact_rows_ends_at_the_same_certified_answer(default_final, guess):
     # The first Newton step solves the KKT system of the guessed rows (none: the load row alone
