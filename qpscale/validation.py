@@ -296,22 +296,34 @@ def _check_unknowns(n_scales: int, n_contact_pairs: int) -> int:
     return 5 * n_scales + 3 * n_contact_pairs
 
 
+#: certify.DENSE_UP_TO: up to this many unknowns the check may also run DAQP's dense solve (first,
+#: or after the sparse one failed), so its dense cost is part of the estimate there.
+DENSE_CHECK_UP_TO = 1500
+
+
+def _check_memory_gb(N: int, n_contact_pairs: int) -> float:
+    """The F_c check's memory above the path's, GB: the sparse solve's KKT factors, PIQP's start and
+    the LPs, 10 kB per unknown (measured 3.7-4.2 kB: peaks 1.4, 4.5, 9.6, 19.5 and 26.7 MB at
+    N = 341, 1221, 2645, 4613 and 7125); up to DENSE_CHECK_UP_TO unknowns also DAQP's dense P and
+    rows, 24 (N^2 + 8 pairs N) bytes."""
+    dense = 24.0 * (float(N) * N + 8.0 * n_contact_pairs * N) if N <= DENSE_CHECK_UP_TO else 0.0
+    return (1e4 * N + dense) / 1e9
+
+
 def puncture_memory_gb(n_scales: int, n_contact_pairs: int) -> float:
     """Estimated peak memory of a puncture run, GB (formulations/substrate.md sec. 11).
 
     The path itself is linear in the patch: the stiffness, the increment QPs, the stability probe
     and the mirror map are sparse (stability.md sec. 8), 1 MB per scale as an upper bound (the path
     peaked 0.07 GB above the interpreter on the 11x11 patch, 0.6 MB per scale), plus 0.3 GB for the
-    interpreter and the libraries.  One part is still dense: the final check of F_c
-    (certify.solve_exact, DAQP's dense active-set method) holds P (N x N) and its rows (about 8
-    per contact pair, x N) in the QP's N = 5 n_scales + 3 n_contact_pairs unknowns, with DAQP's
-    own copies and factors: 24 (N^2 + 8 pairs N) bytes (it raised the peak by 87 MB on the 9x9
-    patch, estimate 100 MB, and by 208 MB on the 11x11, estimate 234 MB).  That term dominates
-    from the 11x11 patch on.
+    interpreter and the libraries.  The final check of F_c (certify.solve_exact) is sparse from
+    certify.SPARSE_FROM = 200 unknowns on (N = 5 n_scales + 3 n_contact_pairs; measured up to 4.2 kB
+    per unknown, estimated 10 kB); DAQP's dense solve, 24 (N^2 + 8 pairs N) bytes (it raised the
+    peak by 75 MB at N = 1221, estimate 100 MB, and by 357 MB at N = 2645), is counted only up to
+    1500 unknowns, where the check may run it.
     """
     N = _check_unknowns(n_scales, n_contact_pairs)
-    check = 24.0 * (float(N) * N + 8.0 * n_contact_pairs * N) / 1e9
-    return 0.3 + 1e-3 * n_scales + check
+    return 0.3 + 1e-3 * n_scales + _check_memory_gb(N, n_contact_pairs)
 
 
 def flexure_memory_gb(mesh_h: float, nz: int, length: float = 10.0, width: float = 10.0) -> float:
@@ -352,15 +364,20 @@ def puncture_time_s(n_scales: int, n_contact_pairs: int, probe: bool = True) -> 
     150 load levels at 4 ms per scale each (PIQP: measured 2.5-3.4 ms per scale per level in wall
     time on the loaded development machine, 58-96 levels of 4-5 QPs each, 5x5 to 11x11); with the
     stability probe 80 states of the sparse test at 0.2 ms per unknown (measured 55 ms at 830
-    unknowns); and the final check of F_c, DAQP's dense active-set solve, up to 1e-8 N^3 s (measured
-    3.1-6.7 s, 9.5-20 s and 114-125 s for N = 1221, 1865 and 2645: 1.5e-9 to 6.8e-9 N^3),
-    N = 5 n_scales + 3 n_contact_pairs.
-    Measured runs took up to 3.6 s, 14 s, 28 s, 49 s and 219 s (5x5 to 13x13, load 4-7 on two
-    cores) against estimates of 21 s, 44 s, 86 s, 167 s and 329 s.
+    unknowns); and the final check of F_c in N = 5 n_scales + 3 n_contact_pairs unknowns: the
+    sparse exact solve and the range's LPs, 2 ms per unknown (measured 0.05-0.36 ms: 0.018 s,
+    0.056 s, 0.13 s, 1.7 s and 0.54 s for N = 341, 1221, 2645, 4613 and 7125), plus DAQP's dense
+    solve, up to 1e-8 N^3 s, where the check may run it (N <= 1500; measured 2.8-6.2 s at
+    N = 1221, and 21-125 s at N = 2645 before the sparse solve replaced it there).
+    Measured runs took up to 3.6 s, 14 s, 28 s and 49 s (5x5 to 11x11, load 4-7 on two cores,
+    with the dense check: 20 s of the 49 s) and 102 s (13x13 with the sparse check, 1.1 s of it
+    from zero, 0.09 s from PIQP's start in an 81 s run; 219 s with the dense one) against
+    estimates of 22 s, 46 s, 89 s, 106 s and 149 s.
     """
     N = _check_unknowns(n_scales, n_contact_pairs)
     qp = 150 * 0.004 * n_scales
-    return qp + (80 * 2e-4 * N if probe else 0.0) + 1e-8 * float(N) ** 3
+    dense = 1e-8 * float(N) ** 3 if N <= DENSE_CHECK_UP_TO else 0.0
+    return qp + (80 * 2e-4 * N if probe else 0.0) + 2e-3 * N + dense
 
 
 def flexure_time_s(mesh_h: float, nz: int, length: float = 10.0, width: float = 10.0) -> float:

@@ -232,16 +232,19 @@ def test_slant_close_to_90_is_refused_with_its_range(no_work):
 
 def test_memory_estimate_by_hand_and_refusal(no_work):
     # 5x5 squares: 25 scales and 72 contact pairs (20 + 20 edge neighbours, 32 diagonal), so the
-    # F_c check's QP has N = 5*25 + 3*72 = 341 unknowns: 24 (N^2 + 8*72 N) bytes, above the 0.3 GB
-    # floor and 1 MB per scale for the sparse path.
-    check = 24 * (341**2 + 8 * 72 * 341) / 1e9
+    # F_c check's QP has N = 5*25 + 3*72 = 341 unknowns: up to 1500 unknowns the check may run
+    # DAQP's dense solve, 24 (N^2 + 8*72 N) bytes, besides the sparse one's 10 kB per unknown;
+    # above the 0.3 GB floor and 1 MB per scale for the sparse path.
+    check = (24 * (341**2 + 8 * 72 * 341) + 1e4 * 341) / 1e9
     assert v.puncture_memory_gb(25, 72) == pytest.approx(0.3 + 0.025 + check, rel=1e-12)
-    result = run("puncture", "--rings", "30")  # 3721 scales: the dense check alone ~270 GB
+    # 17x17 (4613 unknowns): sparse check only, 1e4 * 4613 bytes
+    assert v.puncture_memory_gb(289, 1056) == pytest.approx(0.3 + 0.289 + 1e4 * 4613 / 1e9, rel=1e-12)
+    result = run("puncture", "--rings", "30")  # 3721 scales: 4.6 GB, 3.7 of them the path's bound
     assert result.exit_code == 2
     line = one_error_line(result)
     assert line.startswith("error: --rings:") and "--max-memory-gb" in line
-    result = run("puncture", "--rings", "8", "--max-memory-gb", "1")  # ~2.0 GB
-    assert result.exit_code == 2 and "2.04 GB" in one_error_line(result)
+    result = run("puncture", "--rings", "8", "--max-memory-gb", "0.5")  # ~0.64 GB
+    assert result.exit_code == 2 and "0.635 GB" in one_error_line(result)
 
 
 def test_memory_limit_from_the_environment(no_work, monkeypatch):
@@ -255,18 +258,19 @@ def test_memory_limit_from_the_environment(no_work, monkeypatch):
 
 def test_time_estimate_bounds_the_measured_runs_and_refuses_long_scenes(no_work, monkeypatch):
     # Measured corner-loaded square arrays (probe on, PIQP, wall time on two shared cores under a
-    # load of 4-7; formulations/substrate.md sec. 11; the slower of two runs): 5x5 3.6 s, 7x7 14 s,
-    # 9x9 28 s, 11x11 49 s, 13x13 219 s.  The estimate must not fall below a measurement (it
-    # refuses runs, it must not let a long one through on a machine like this one) and stays
-    # within a factor 10 of it.
+    # load of 3-7; formulations/substrate.md sec. 11; the slower of two runs): 5x5 3.6 s, 7x7 14 s,
+    # 9x9 28 s, 11x11 49 s (these four with DAQP's dense F_c check), 13x13 102 s (with the sparse
+    # check, 1.1 s of it).  The estimate must not fall below a measurement (it refuses runs, it
+    # must not let a long one through on a machine like this one) and stays within a factor 10.
     from qpscale.tiling import Design
 
-    for rings, measured in ((2, 3.6), (3, 14.0), (4, 28.0), (5, 49.0), (6, 219.0)):
+    for rings, measured in ((2, 3.6), (3, 14.0), (4, 28.0), (5, 49.0), (6, 102.0)):
         patch = Design(rings=rings).patch()
         est = v.puncture_time_s(patch.n_scales, len(patch.contact_pairs))
         assert measured <= est <= 10 * measured, (rings, est)
-    # 441 scales: ~67 min (the dense F_c check 60 of them), 4.2 GB: the memory limit raised
-    result = run("puncture", "--rings", "10", "--max-memory-gb", "100")
+    # 5041 scales: ~76 min (the path's levels and probe; the sparse check ~3 min), 5.8 GB: the
+    # memory limit raised
+    result = run("puncture", "--rings", "35", "--max-memory-gb", "100")
     assert result.exit_code == 2
     line = one_error_line(result)
     assert line.startswith("error: --rings:") and "--max-minutes" in line
