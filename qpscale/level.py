@@ -36,7 +36,9 @@ STALL_TIGHTEN = 1e-2
 # A step this many times the last restarts Anderson's history (sec. 4, Acceleration): a mildly
 # expanding mode is what the extrapolation cures, a leap out of the smooth region is not.
 ANDERSON_GROWTH = 2.0
-# Relaxation of the step (sec. 4c): a step that turns back on the one before it, by its component
+# Relaxation of the plain iteration's step (sec. 4c; the accelerated one keeps omega = 1: relaxed,
+# it reached the far branch of a bistable level and each landing was located as a jump): a step
+# of the plain iteration that turns back on the one before it, by its component
 # along it ``rho = dx_k . dx_(k-1) / |dx_(k-1)|^2`` below REVERSAL, marks a mode of the iteration
 # map with multiplier mu < 0 (an oscillation; below -1 it grows).  The step is then scaled by
 # omega / (1 - rho), the secant estimate that puts that mode's multiplier at zero, never below
@@ -272,7 +274,8 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
         if step.labels != labels:
             accel.reset()
             labels = step.labels
-        omega, last = relaxation(omega, dx, last), dx
+        if not c.anderson_depth:  # the plain iteration (the landings' descent) is relaxed
+            omega, last = relaxation(omega, dx, last), dx
         x, rows = _accelerated(accel, x, dx, rows, omega)
     detail = f"last |dx| = {np.max(np.abs(dx), initial=0.0):.3g} after {c.max_iter} linearisations"
     failure = SolverFailure(c.solver, c.unconverged, c.increment, detail)
