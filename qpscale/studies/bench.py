@@ -121,7 +121,7 @@ class Reference:
 
     scene: str
     Fc_star: float
-    load_point: tuple[float, float]
+    load_point: tuple[float, float] | None  # None: the worst vertex is searched
     wall_s: float
 
 
@@ -241,8 +241,8 @@ def reference_run(scene: Scene, limit_s: float | None = None) -> Reference:
     t0 = time.perf_counter()
     with wall_limit(limit_s):
         res = run_puncture(_setup(scene, Method("reference", DEFAULT_SOLVER), scene.load_point))
-    xy = tuple(float(v) for v in res.load_point)
-    return Reference(scene.name, float(res.Fc_star), xy, time.perf_counter() - t0)  # type: ignore[arg-type]
+    xy = (float(res.load_point[0]), float(res.load_point[1]))
+    return Reference(scene.name, float(res.Fc_star), xy, time.perf_counter() - t0)
 
 
 def complementarity(res) -> float:

@@ -106,9 +106,9 @@ def _stability_point(params: dict, scene: Scene, methods: list[Method], time_lim
     """One grid point: its reference run, then every method against it (a worker's task)."""
     ref_run = run_method(scene, Method("clarabel", "clarabel"), None, time_limit)
     rows = [{**params, **_row(ref_run)}]
-    ref = (
-        Reference(scene.name, ref_run.Fc_star, scene.load_point, ref_run.wall_s) if ref_run.success else None
-    )  # type: ignore[arg-type]
+    ref = None
+    if ref_run.success and ref_run.Fc_star is not None:
+        ref = Reference(scene.name, ref_run.Fc_star, scene.load_point, ref_run.wall_s)
     for m in methods:
         run = (
             run_method(scene, m, ref, time_limit)

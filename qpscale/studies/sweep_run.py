@@ -74,11 +74,9 @@ def _call_api(point: DesignPoint) -> dict[str, Any]:
     p = dict(point.params)
     if point.experiment == "puncture":
         full = p["interaction"] == "full"
-        report = api.puncture(**{**p, "coupling_factor": None if full else p["coupling_factor"]})
-    else:
-        mode = p.pop("mode")
-        report = api.flexure(**p, isolated=mode == "isolated")
-    return report.to_dict()
+        return api.puncture(**{**p, "coupling_factor": None if full else p["coupling_factor"]}).to_dict()
+    mode = p.pop("mode")
+    return api.flexure(**p, isolated=mode == "isolated").to_dict()
 
 
 def _plain_params(point: DesignPoint) -> dict[str, Any]:

@@ -71,8 +71,8 @@ def _edge_terms(p: Array, a: Array, b: Array, keys: tuple[str, ...]) -> dict[str
     if "x" in keys:
         d_atan = np.arctan2(h * length, h2 + s1 * s2)
         d_log = 2.0 * np.log(r2 / r1)
-        for i, c in (("x", 0), ("y", 1)):
-            out[i] = h * (n[:, c] * d_atan + 0.5 * t[:, c] * d_log)
+        for key, c in (("x", 0), ("y", 1)):
+            out[key] = h * (n[:, c] * d_atan + 0.5 * t[:, c] * d_log)
     if "xx" in keys:
         d_sr = s2 / r2 - s1 / r1
         d_ir = 1.0 / r2 - 1.0 / r1

@@ -57,7 +57,7 @@ def _save(path: Path, cal: Calibration) -> None:
     # the final name, and an interrupted or failed write (disk full) leaves no file behind.
     tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
     try:
-        np.savez(tmp, **arrays)
+        np.savez(tmp, **arrays)  # type: ignore[arg-type]  # numpy's stub types **kwds as allow_pickle
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

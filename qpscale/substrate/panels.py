@@ -8,6 +8,7 @@ is singular, and the points along each strip are spaced by a cosine rule towards
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -147,7 +148,7 @@ def mesh_footprints(
     tris, owner = [], []
     for k, (pieces, n) in enumerate(zip(footprints, dens)):
         pieces = [np.asarray(p, dtype=float) for p in pieces]
-        far = [None] * len(pieces)
+        far: Sequence[np.ndarray | None] = [None] * len(pieces)
         if focus is not None and k != focus:
             far = far_edges(pieces, footprints[focus], reach)
         for piece, inner, remote in zip(pieces, internal_edges(pieces), far):

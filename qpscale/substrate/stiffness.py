@@ -116,7 +116,7 @@ def calibrate(design: Design, model: SubstrateModel | None = None) -> Calibratio
             model.nu,
             model.refinement,
             model.calibration_rings,
-            params["cross_terms"],
+            bool(params["cross_terms"]),
         ),
     )
     if model.fidelity == "springs":
