@@ -248,16 +248,25 @@ class _Lifted:
 def _null_space(C: Array) -> Array:
     """Orthonormal basis of the null space of ``C`` (singular values below 1e-10 of the largest).
 
-    LAPACK's divide-and-conquer SVD (gesdd) occasionally fails to converge on these matrices
-    (seen on the 5x5 dart); the QR-iteration driver (gesvd) is slower but robust.  Non-finite
-    entries are a solver failure, reported as such.
+    The right singular vectors only: for a tall ``C`` (the multiplier set's ``B``: one row per
+    unknown, one column per row in contact) the thin SVD holds all of them, where
+    ``scipy.linalg.null_space`` forms the full square ``U`` as well (3.2 GB and minutes per call
+    for the 20,000 unknowns of a 41x41 patch).  LAPACK's divide-and-conquer SVD (gesdd)
+    occasionally fails to converge on these matrices (seen on the 5x5 dart); the QR-iteration
+    driver (gesvd) is slower but robust.  Non-finite entries are a solver failure, reported as such.
     """
     if not np.all(np.isfinite(C)):
         raise SolverFailure("stability", "non-finite constraint gradients", detail="second variation")
+    m, n = C.shape
+    if n == 0:
+        return np.zeros((0, 0))
+    full = m < n  # then Vh must be square to hold the null space
     try:
-        return la.null_space(C, rcond=1e-10)
+        _, s, vh = la.svd(C, full_matrices=full)
     except la.LinAlgError:
-        return la.null_space(C, rcond=1e-10, lapack_driver="gesvd")
+        _, s, vh = la.svd(C, full_matrices=full, lapack_driver="gesvd")
+    rank = int(np.sum(s > 1e-10 * s.max(initial=0.0))) if len(s) else 0
+    return vh[rank:].T.copy()
 
 
 def _base_hessian(lifted: _Lifted, K) -> Array:

@@ -220,3 +220,21 @@ def test_sparse_verdict_over_the_multiplier_set_agrees_with_the_dense_one(monkey
         assert sparse.stable == dense.stable
         gap = min(np.abs(sparse.mode - dense.mode).max(), np.abs(sparse.mode + dense.mode).max())
         assert gap < TOLERANCES["mode"]
+
+
+def test_null_space_of_a_tall_matrix_is_scipys_without_the_square_factor():
+    # _null_space takes the thin SVD of a tall matrix (the multiplier set's B, one row per unknown)
+    # instead of scipy's full one; the space must be the same: the projectors onto both bases
+    # agree to round-off, here with two exact dependencies among 40 columns of 2,000 rows.
+    import scipy.linalg as la
+
+    from qpscale.stability import _null_space
+
+    rng = np.random.default_rng(7)
+    C = rng.standard_normal((2000, 40))
+    C[:, 5] = C[:, 1] - 2 * C[:, 3]
+    C[:, 17] = 0.5 * C[:, 9]
+    Z, R = _null_space(C), la.null_space(C, rcond=1e-10)
+    assert Z.shape == R.shape == (40, 2)
+    np.testing.assert_allclose(Z @ Z.T, R @ R.T, atol=1e-12)
+    np.testing.assert_allclose(Z.T @ Z, np.eye(2), atol=1e-12)
