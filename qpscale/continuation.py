@@ -648,7 +648,20 @@ class Path:
                 eq, landed = outcome.state, False
             sv = self.stability(eq) if self.settings.check and not landed else None
             unstable = sv is not None and not sv.stable and not self.unconfirmed
-            if unstable or (self.settings.conservative and not landed and self.snapped(last, eq)):
+            flagged = unstable or (self.settings.conservative and not landed and self.snapped(last, eq))
+            if flagged and not unstable and ceiling == np.inf:
+                # A step that releases energy is a jump only if the energy descent from the last
+                # state releases it too: the plain iteration follows the branch the path is on,
+                # where the accelerated level can leap into a neighbouring basin (a bistable
+                # contact far from the load, sec. 2 "Leaps").  Bisected instead, each leap cost a
+                # bracket and gained its width (the contact-only 5x5 staggered triangle: 2.8e-4
+                # released by every step from delta 0.4526 on, 4.5e-6 L gained per bracket).
+                follow = self.solve(last, eq.delta, len(states), descent=True).state
+                if follow is not None and not self.snapped(last, follow):
+                    sv_follow = self.stability(follow) if self.settings.check else None
+                    if sv_follow is None or sv_follow.stable:
+                        eq, sv, flagged = follow, sv_follow, False
+            if flagged:
                 now = "unstable" if unstable else "snap"
                 if step > _resolution(now, fine) * eq.delta:
                     # A jump flagged again from the nearer start of a retest, releasing as much

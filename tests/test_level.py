@@ -261,7 +261,7 @@ def alone():
 
 def test_halve_step_fires_when_a_level_fails_and_the_path_keeps_Fc(alone, monkeypatch):
     setup, clean = alone
-    faults = Faults(fail={12})  # one level's QP fails, and so does its retry
+    faults = Faults(fail={7})  # one level's QP fails, and so does its retry
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
     hurt = run_puncture(setup)
     halved = [e for e in hurt.events if e.kind == "rescue" and e.rescue == "halve_step"]

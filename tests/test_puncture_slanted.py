@@ -95,6 +95,31 @@ def test_a_looping_event_location_now_reaches_phi_c_with_its_work_balanced(name)
     assert work == pytest.approx(balance, rel=2e-3)
 
 
+def test_a_step_that_leapt_into_a_neighbouring_basin_is_followed_not_bisected():
+    # The paper's contact-only 5x5 staggered triangle (coupling 0.04).  From delta 0.4526 on, two
+    # stable equilibria 2.8e-4 apart in energy coexist at every depth (a contact far from the load
+    # is bistable), and the accelerated level from the secant predictor lands in the lower one:
+    # every step released 2.8e-4.  Each was bisected as a jump to 1e-5 of the depth, the plain
+    # iteration then followed the branch, and the next full step leapt again: 4.5e-6 L gained per
+    # bracket, and the scene ran out of its 900 CPU-s (1,000+ levels).  Now the energy descent
+    # from the last state is asked first, and a step it follows without a release is an ordinary
+    # step.  Measured: 60 levels, F_c* = 0.45379251.  Independent checks: the exact F_c check,
+    # and the conservation of work (load's work = stored energy + located releases; measured
+    # 1.5e-4 apart).
+    from qpscale.studies.paper_run import NU_S
+
+    design = Design(shape="triangle", tiling="staggered")
+    setup = PunctureSetup(
+        design=design, interaction="contact", nu=NU_S, load_point=(-1.5196713713031853, -0.8773826753016617)
+    )
+    result = run_puncture(setup)
+    assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
+    assert result.Fc_check is not None and result.Fc_check.status == "verified"
+    assert result.load_levels < 150
+    work, balance = work_balance(setup, result)
+    assert work == pytest.approx(balance, rel=2e-3)
+
+
 def test_an_inner_bracket_returns_to_the_nearest_open_ceiling_above_the_state():
     # Each open ceiling carries its kind: back at an instability's, the regula falsi restarts.
     pending = [(0.5, "snap"), (0.4, "unstable"), (0.3, "snap")]
