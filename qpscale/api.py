@@ -386,6 +386,7 @@ def puncture(
     max_minutes: float | None = None,
     progress: Callable[[str], None] | None = None,
     rings_tol: float | None = None,
+    max_increments: int = v.DEFAULT_MAX_INCREMENTS,
 ) -> PunctureReport:
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c.
 
@@ -437,6 +438,10 @@ def puncture(
         Called with a short message as the path advances.
     rings_tol : float or None
         Relative tolerance of ``rings="auto"``, (0, 0.5] (default 0.005); only with ``"auto"``.
+    max_increments : int
+        Steps each load point's path may take before it gives up (``failure tilt not reached``),
+        integers in [16, 100000] (default 400; the states that locate an event are not counted,
+        formulations/puncture.md sec. 2).
 
     Returns
     -------
@@ -474,6 +479,7 @@ def puncture(
     tol = v.accuracy("high" if accuracy is None else accuracy)
     phi_c = v.real("phi_c_deg", phi_c_deg, 0.0, 60.0, lo_open=True, unit="deg")
     nu_s = v.real("nu", nu, 0.0, 0.5)
+    budget = v.integer("max_increments", max_increments, *v.MAX_INCREMENTS_RANGE)
     if E_s is None and L_mm is not None:
         raise v.conflict("L_mm", "E_s", "L converts F_c to newtons only together with E_s")
     modulus = None if E_s is None else v.real("E_s", E_s, 0.0, 1e12, lo_open=True, unit="Pa")
@@ -511,6 +517,7 @@ def puncture(
         probe=bool(probe),
         sqp=SQPSettings(solver=backend, accuracy=tol),
         contact=ContactSettings(formulation=rows),
+        max_increments=budget,
     )
     result = run_puncture(setup, progress=progress)
     payload: dict[str, Any] = {

@@ -82,6 +82,7 @@ RANGES: dict[str, str] = {
     "--fuzz": "integers in [0, 100000]",
     "--max-memory-gb": "(0, inf) GB (default $QPSCALE_MAX_MEMORY_GB or 4)",
     "--max-minutes": "(0, inf) min (default $QPSCALE_MAX_MINUTES or 60)",
+    "--max-increments": "integers in [16, 100000] (default 400)",
     "--png": "a .png, .svg or .pdf file path; its directory is created before the run",
     "--vtk": "a directory, created before the run; an earlier series there is replaced",
     "--out": "a directory (sweep: a .parquet file), created before the run",
@@ -454,6 +455,11 @@ def puncture(
     ),
     phi_c: float = typer.Option(13.0, "--phi-c", help=_help("--phi-c", "Critical tilt.")),
     nu: float = typer.Option(0.5, "--nu", help=_help("--nu", "Poisson's ratio of the substrate.")),
+    max_increments: int = typer.Option(
+        400,
+        "--max-increments",
+        help=_help("--max-increments", "Steps a load point's path may take before it gives up."),
+    ),
     load_point: tuple[float, float] | None = typer.Option(
         None,
         "--load-point",
@@ -504,6 +510,7 @@ def puncture(
             max_minutes=max_minutes,
             progress=progress,
             rings_tol=rings_tol,
+            max_increments=max_increments,
         )
 
     def summary(p: dict[str, Any]) -> None:

@@ -769,7 +769,8 @@ class Path:
             self.settings.solver,
             "failure tilt not reached",
             len(states),
-            f"tilt {np.rad2deg(self.tilt_of(states[-1])):.3f} deg after {len(states)} increments",
+            f"tilt {np.rad2deg(self.tilt_of(states[-1])):.3f} deg after {len(states)} increments; "
+            f"max_increments = {self.settings.max_increments} steps",
         )
 
     def switch(self, bifurcation: Bifurcation, mode: np.ndarray) -> list[Equilibrium]:

@@ -62,6 +62,7 @@ FLAG_OF: dict[str, str] = {
     "fuzz": "--fuzz",
     "max_memory_gb": "--max-memory-gb",
     "max_minutes": "--max-minutes",
+    "max_increments": "--max-increments",
     "smoke": "--smoke",
     "quick": "--quick",
 }
@@ -73,6 +74,10 @@ SLANT_RANGE = "[0, 90)"
 # 573 L away).  10 L allows alpha up to 84.3 deg at t = 1 and 78.7 deg at t = 2 (the fuzz of the
 # bench draws up to 75 deg at t <= 2).
 MAX_TOP_OFFSET = 10.0
+# The steps a puncture path may take before it gives up (formulations/puncture.md sec. 2): at least
+# the 16 increments a path aims at.
+DEFAULT_MAX_INCREMENTS = 400
+MAX_INCREMENTS_RANGE = (16, 100_000)
 MAX_RINGS = 50  # Design's own bound; the memory estimate is the real limit on a machine
 MESH_H_RANGE = (0.05, 2.0)  # in L; coarser than 2 L leaves fewer than 5 elements over the 10 L block
 DEFAULT_MAX_MEMORY_GB = 4.0

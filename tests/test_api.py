@@ -102,6 +102,7 @@ def test_substrate_isolated_and_its_coupling_frame():
         (lambda: flexure(bare=True, gap=0.1), "bare"),
         (lambda: geometry(gap="0.1"), "gap"),  # type: ignore[arg-type]  # a string is not a number
         (lambda: substrate(nu=0.6), "nu"),
+        (lambda: puncture(max_increments=15), "max_increments"),  # below the 16 a path aims at
     ],
 )
 def test_api_validation_is_the_clis(call, parameter):
@@ -124,3 +125,15 @@ def test_events_as_records_or_dicts_serialise_alike():
 
     assert plain([Event("contact", 0.5)]) == plain([{"kind": "contact", "delta": 0.5}])
     assert plain({"x": float("nan"), "y": [float("inf"), 1.0]}) == {"x": None, "y": [None, 1.0]}
+
+
+def test_max_increments_is_the_paths_budget():
+    # The 3x3 square array at a corner takes 30 increments (measured; the default budget is 400): with 16 it
+    # stops with its status and says which budget it ran out of; the isolated scale needs 15.
+    from qpscale.errors import SolverFailure
+
+    with pytest.raises(SolverFailure) as err:
+        puncture(rings=1, load_point=(0.5, 0.5), max_increments=16)
+    assert err.value.status == "failure tilt not reached"
+    assert "max_increments = 16" in str(err.value)
+    assert puncture(isolated=True, max_increments=16).payload["increments"] <= 16

@@ -45,7 +45,8 @@ NUMERIC_FLAGS = {
     "geometry": ["--slant", "--slant-dir", "--gap", "--thickness", "--rings"],
     "substrate": ["--nu", "--refinement", "--gap"],
     "puncture": ["--slant", "--slant-dir", "--gap", "--thickness", "--rings", "--coupling-factor", "--phi-c",
-                 "--nu", "--E-s", "--L-mm", "--max-memory-gb", "--max-minutes", "--accuracy"],
+                 "--nu", "--E-s", "--L-mm", "--max-memory-gb", "--max-minutes", "--accuracy",
+                 "--max-increments"],
     "flexure": ["--slant", "--slant-dir", "--gap", "--thickness", "--nu-m", "--mesh-h", "--max-memory-gb",
                 "--max-minutes"],
 }  # fmt: skip

@@ -66,6 +66,35 @@ def test_every_flag_documented_with_its_range_and_none_invented(command):
     assert _documented_flags(command) == _command_flags(command)
 
 
+def _default_text(p) -> str:
+    """A parameter's default as the page writes it: (none), on/off for a flag, else the value."""
+    if getattr(p, "is_flag", False) or p.secondary_opts:
+        return "on" if p.default else "off"
+    return "(none)" if p.default is None else str(p.default)
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_documented_default_is_the_codes(command):
+    # The page's default column against the command's own defaults (the --solver rows had said
+    # clarabel after the default backend became PIQP).
+    cmd = typer.main.get_command(app).commands[command]  # type: ignore[attr-defined]
+    rows = {row[0].strip("`").split("/")[0]: row for row in _section(command, "Flags")}
+    for p in cmd.params:
+        if p.name == "help" or not p.opts:
+            continue
+        flag = max(p.opts, key=len)
+        if flag not in rows:
+            continue
+        _, documented, _, meaning = rows[flag]
+        if p.required:
+            assert documented == "(required)", flag
+        elif p.default is None and documented != "(none)":
+            # resolved at run time (the workers): the page states the value, and so does the help
+            assert f"default {documented})" in meaning or f"default: {documented})" in meaning, flag
+        else:
+            assert documented == _default_text(p), flag
+
+
 @pytest.mark.parametrize("command", COMMANDS)
 def test_every_documented_flag_is_in_the_help(command):
     result = CliRunner().invoke(app, [command, "--help"], env={"COLUMNS": "300"}, terminal_width=300)

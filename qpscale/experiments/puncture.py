@@ -41,6 +41,7 @@ from ..penalty import PenaltySettings
 from ..substrate import SubstrateModel, stiffness_matrix
 from ..threads import limited_blas
 from ..tiling import Design, Patch
+from ..validation import DEFAULT_MAX_INCREMENTS
 from .symmetry import mirror_through, vertex_orbits
 
 log = logging.getLogger(__name__)
@@ -88,7 +89,7 @@ class PunctureSetup:
     sqp: SQPSettings = field(default_factory=SQPSettings)
     contact: ContactSettings = field(default_factory=ContactSettings)
     increments: int = 16
-    max_increments: int = 400
+    max_increments: int = DEFAULT_MAX_INCREMENTS
     probe: bool = True
     penalty: PenaltySettings | None = None
 
