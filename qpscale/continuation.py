@@ -656,8 +656,13 @@ class Path:
                 # contact far from the load, sec. 2 "Leaps").  Bisected instead, each leap cost a
                 # bracket and gained its width (the contact-only 5x5 staggered triangle: 2.8e-4
                 # released by every step from delta 0.4526 on, 4.5e-6 L gained per bracket).
+                # Below phi_c only: a followed state past it would bracket the failure search,
+                # whose levels start from states interpolated across the whole step and can leap
+                # into the same neighbouring basin (fuzz design 632: F_c* 1.793 from the other
+                # basin against 1.902 on the branch); there the bisection brings the starts close.
                 follow = self.solve(last, eq.delta, len(states), descent=True).state
-                if follow is not None and not self.snapped(last, follow):
+                below = follow is not None and self.tilt_of(follow) < self.phi_c
+                if follow is not None and below and not self.snapped(last, follow):
                     sv_follow = self.stability(follow) if self.settings.check else None
                     if sv_follow is None or sv_follow.stable:
                         eq, sv, flagged = follow, sv_follow, False

@@ -120,6 +120,38 @@ def test_a_step_that_leapt_into_a_neighbouring_basin_is_followed_not_bisected():
     assert work == pytest.approx(balance, rel=2e-3)
 
 
+# Design 632 of the same grid: its step across phi_c leapt into a neighbouring basin too.
+PAST_PHI_C = (
+    Design(
+        shape="triangle",
+        tiling="staggered",
+        slant_deg=47.20319313539876,
+        slant_dir_deg=0.0,
+        gap=0.06536114165614419,
+        thickness=1.8157798677599408,
+        rings=1,
+    ),
+    0.1339638767602045,
+    0.019567640744811154,
+    (0.4414117349125757, -0.8773826753016617),
+)
+
+
+def test_a_leap_across_phi_c_is_bisected_and_the_failure_stays_on_the_branch():
+    # The step from delta 0.630 to 0.683 lands past phi_c in a neighbouring basin (tilt 13.63
+    # deg); the energy descent follows the branch (13.09 deg).  Taken as the step, that state
+    # bracketed the failure search, whose levels started from states interpolated across the
+    # whole step and leapt into the other basin again: F_c* = 1.793, with the work 1.6 % above
+    # the stored energy (no snap recorded).  A followed state past phi_c is not taken: the step
+    # is bisected and the failure located on the branch, F_c* = 1.9018117 (measured).
+    # Independent checks: the exact F_c check and the conservation of work.
+    setup = _as_drawn(PAST_PHI_C)
+    result = run_puncture(setup)
+    assert result.Fc_check is not None and result.Fc_check.status == "verified"
+    work, balance = work_balance(setup, result)
+    assert work == pytest.approx(balance, rel=2e-3)
+
+
 def test_an_inner_bracket_returns_to_the_nearest_open_ceiling_above_the_state():
     # Each open ceiling carries its kind: back at an instability's, the regula falsi restarts.
     pending = [(0.5, "snap"), (0.4, "unstable"), (0.3, "snap")]
