@@ -31,7 +31,7 @@ from typer.core import TyperGroup
 from . import __version__
 from .errors import InvalidDesign, OutputNotWritten, QpscaleError, SolverFailure, SolverUnavailable
 from .solvers import DEFAULT_SOLVER
-from .validation import FLAG_OF, Conflict
+from .validation import DEFAULT_MAX_INCREMENTS, FLAG_OF, MAX_INCREMENTS_RANGE, Conflict
 
 # soft_wrap: a summary piped to a file or another program is one line per result, never cut in the
 # middle of a number at 80 columns.
@@ -82,7 +82,9 @@ RANGES: dict[str, str] = {
     "--fuzz": "integers in [0, 100000]",
     "--max-memory-gb": "(0, inf) GB (default $QPSCALE_MAX_MEMORY_GB or 4)",
     "--max-minutes": "(0, inf) min (default $QPSCALE_MAX_MINUTES or 60)",
-    "--max-increments": "integers in [16, 100000] (default 400)",
+    "--max-increments": "integers in [{}, {}] (default {})".format(
+        *MAX_INCREMENTS_RANGE, DEFAULT_MAX_INCREMENTS
+    ),
     "--png": "a .png, .svg or .pdf file path; its directory is created before the run",
     "--vtk": "a directory, created before the run; an earlier series there is replaced",
     "--out": "a directory (sweep: a .parquet file), created before the run",
@@ -456,7 +458,7 @@ def puncture(
     phi_c: float = typer.Option(13.0, "--phi-c", help=_help("--phi-c", "Critical tilt.")),
     nu: float = typer.Option(0.5, "--nu", help=_help("--nu", "Poisson's ratio of the substrate.")),
     max_increments: int = typer.Option(
-        400,
+        DEFAULT_MAX_INCREMENTS,
         "--max-increments",
         help=_help("--max-increments", "Steps a load point's path may take before it gives up."),
     ),
