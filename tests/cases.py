@@ -27,3 +27,20 @@ def work_balance(setup, result) -> tuple[float, float]:
     q = result.states[-1].q.ravel()
     released = sum(e.energy_released for e in result.events if e.kind == "snap")
     return work, 0.5 * float(q @ (K @ q)) + released
+
+
+def fuzz_setup(i: int):
+    """The puncture set-up of design ``i`` of the bench's fuzz (seed 1000) as the fuzz runs it:
+    contact interaction, its coupling and nu, its drawn vertex, four target increments."""
+    from qpscale.experiments.puncture import PunctureSetup
+    from qpscale.studies.bench_report import fuzz_design_number
+
+    design, extra, point = fuzz_design_number(i)
+    return PunctureSetup(
+        design=design,
+        interaction="contact",
+        coupling=extra["coupling"],
+        nu=extra["nu"],
+        load_point=point,
+        increments=4,
+    )

@@ -127,6 +127,20 @@ def test_fuzz_rows_pass_the_checks_or_carry_a_status(tmp_path, monkeypatch):
     bad = bench_report.fuzz(2, tmp_path / "bad", seed=1)
     assert list(bad.outcome) == ["solver failure"] * 2 and list(bad.status) == ["MaxIterations"] * 2
     assert "Fc_star" not in bad and bad["shape"].notna().all()
+    # The tests' fuzz designs are drawn by number: the number reproduces the fuzz's own rows, in
+    # the first chunk and past it (a chunk is 25 designs drawn from seed + chunk).
+    many = bench_report.fuzz(bench_report.FUZZ_CHUNK + 3, tmp_path / "many", seed=1)
+    drawn = many[many.outcome == "solver failure"]
+    assert drawn["i"].max() >= bench_report.FUZZ_CHUNK
+    for _, row in drawn.iterrows():
+        design, extra, point = bench_report.fuzz_design_number(int(row["i"]), seed=1)
+        assert (design.shape, design.slant_deg, design.gap, extra["nu"]) == (
+            row["shape"],
+            row["slant_deg"],
+            row["gap"],
+            row["nu"],
+        )
+        assert point == (row["load_x"], row["load_y"])
     # A finished chunk is read back, not rerun: the broken solver cannot change the first result.
     again = bench_report.fuzz(4, tmp_path, seed=3)
     assert list(again.outcome) == list(df.outcome)

@@ -14,60 +14,24 @@ from qpscale.continuation import _next_ceiling
 from qpscale.experiments.puncture import PunctureSetup, run_puncture
 from qpscale.tiling import Design
 
-from .cases import work_balance
+from .cases import fuzz_setup, work_balance
 
-# (design, coupling, nu, load point) as the fuzz drew them (design 7 of seed 1000).
-LOOPED = {
-    "hexagon-54-45": (
-        Design(
-            shape="hexagon",
-            tiling="honeycomb",
-            slant_deg=54.32052875739798,
-            slant_dir_deg=45.0,
-            gap=0.05443156497493541,
-            thickness=1.0694760345502679,
-            rings=1,
-        ),
-        0.6044247282655253,
-        0.3673019962141401,
-        (2.127776669185251, 0.4328034979603088),
-    ),
-}
-
-
-def _as_drawn(case: tuple) -> PunctureSetup:
-    """The puncture set-up of a fuzz design ``(design, coupling, nu, load point)`` as the fuzz runs
-    it: contact interaction, four target increments."""
-    design, coupling, nu, point = case
-    return PunctureSetup(
-        design=design, interaction="contact", coupling=coupling, nu=nu, load_point=point, increments=4
-    )
+# Fuzz designs are drawn by their number in the bench's fuzz (seed 1000; cases.fuzz_setup).  Design
+# 7: a 3x3 hexagon array slanted 54 deg towards 45 deg.
+LOOPED = {"hexagon-54-45": 7}
 
 
 # Design 140 of the same grid (seed 1000): a 3x3 staggered triangle array that ran out of its 30
 # CPU-s.  A confirmed instability's landing lay 6e-8 L above the state before it, and the secant
 # of those two states, over the next step of 0.03 L, started the level in another basin; its
 # bisection came back down to the same instability, without end.
-LEAPT = (
-    Design(
-        shape="triangle",
-        tiling="staggered",
-        slant_deg=49.247976722535604,
-        slant_dir_deg=45.0,
-        gap=0.038061869734703595,
-        thickness=1.881544605912745,
-        rings=1,
-    ),
-    0.056395315051888995,
-    0.04707791900319791,
-    (1.5439563987298264, 3.2987217493331498),
-)
+LEAPT = 140
 
 
 def test_a_step_after_a_landing_is_not_extrapolated_across_it():
     # Measured: 134 levels, F_c* = 1.4264132405, verified against the exact active-set solution.
     # Independent checks: the exact F_c check and the conservation of work (as above).
-    setup = _as_drawn(LEAPT)
+    setup = fuzz_setup(LEAPT)
     result = run_puncture(setup)
     assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"
@@ -84,7 +48,7 @@ def test_a_looping_event_location_now_reaches_phi_c_with_its_work_balanced(name)
     # levels.  Independent check, a conservation law: the load's work equals the stored energy at
     # failure plus the energy released at located snaps (the step control keeps the quadrature
     # error within 1e-3 of each step's work).
-    setup = _as_drawn(LOOPED[name])
+    setup = fuzz_setup(LOOPED[name])
     result = run_puncture(setup)
     assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"
@@ -121,20 +85,7 @@ def test_a_step_that_leapt_into_a_neighbouring_basin_is_followed_not_bisected():
 
 
 # Design 632 of the same grid: its step across phi_c leapt into a neighbouring basin too.
-PAST_PHI_C = (
-    Design(
-        shape="triangle",
-        tiling="staggered",
-        slant_deg=47.20319313539876,
-        slant_dir_deg=0.0,
-        gap=0.06536114165614419,
-        thickness=1.8157798677599408,
-        rings=1,
-    ),
-    0.1339638767602045,
-    0.019567640744811154,
-    (0.4414117349125757, -0.8773826753016617),
-)
+PAST_PHI_C = 632
 
 
 def test_a_leap_across_phi_c_is_bisected_and_the_failure_stays_on_the_branch():
@@ -145,7 +96,7 @@ def test_a_leap_across_phi_c_is_bisected_and_the_failure_stays_on_the_branch():
     # the stored energy (no snap recorded).  A followed state past phi_c is not taken: the step
     # is bisected and the failure located on the branch, F_c* = 1.9018117 (measured).
     # Independent checks: the exact F_c check and the conservation of work.
-    setup = _as_drawn(PAST_PHI_C)
+    setup = fuzz_setup(PAST_PHI_C)
     result = run_puncture(setup)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"
     work, balance = work_balance(setup, result)
@@ -201,20 +152,7 @@ def test_slanted_5x5_arrays_reach_phi_c_verified_and_balanced(name):
 # diagonal.  Its held-symmetric branch stopped being an equilibrium of the free problem at
 # delta ~ 0.041 (the free QP at the held state moved q by 3e-5, then up to 0.06 L), and the path
 # failed from a held state whose F the exact check refused (2.2456 against 2.1850).
-UNBALANCED = (
-    Design(
-        shape="square",
-        tiling="arrayed",
-        slant_deg=66.60780118090628,
-        slant_dir_deg=45.0,
-        gap=0.048973355016570796,
-        thickness=0.6685760172022082,
-        rings=1,
-    ),
-    0.004443803583697337,
-    0.2973014572539302,
-    (2.0928797350873602, 2.0928797350873602),
-)
+UNBALANCED = 866
 
 
 def test_a_held_branch_ends_where_the_free_problem_no_longer_balances_it():
@@ -226,7 +164,7 @@ def test_a_held_branch_ends_where_the_free_problem_no_longer_balances_it():
     from qpscale.continuation import HELD_FREE_TOL
     from qpscale.experiments.puncture import _load_point, build_model, mirror_through, puncture_path
 
-    setup = _as_drawn(UNBALANCED)
+    setup = fuzz_setup(UNBALANCED)
     point = setup.load_point
     result = run_puncture(setup)
     assert result.Fc_check is not None and result.Fc_check.status == "verified"

@@ -279,6 +279,29 @@ def _fuzz_chunk(
     return df
 
 
+def fuzz_case(rng: np.random.Generator) -> tuple[Design, dict, tuple[float, float]]:
+    """One draw of the fuzz: the design, its ``coupling`` and ``nu``, and the load point (one of
+    its top-face vertices).  Raises InvalidDesign, as the fuzz records it, before the vertex is drawn."""
+    design, extra = random_design(rng)
+    verts = top_vertices(design.patch())
+    vertex = verts[int(rng.integers(len(verts)))]
+    return design, extra, (float(vertex[0]), float(vertex[1]))
+
+
+def fuzz_design_number(i: int, seed: int = FUZZ_SEED) -> tuple[Design, dict, tuple[float, float]]:
+    """Design ``i`` of the fuzz with ``seed`` as the fuzz drew it (chunk ``i // FUZZ_CHUNK`` from
+    ``seed`` plus the chunk; an invalid design before it consumed its draws without a vertex)."""
+    if not 0 <= i:
+        raise InvalidDesign("i", i, "integers >= 0")
+    rng = np.random.default_rng(seed + i // FUZZ_CHUNK)
+    for _ in range(i % FUZZ_CHUNK):
+        try:
+            fuzz_case(rng)
+        except InvalidDesign:
+            pass
+    return fuzz_case(rng)
+
+
 def _fuzz_design(rng: np.random.Generator, method: Method, increments: int, limit_s: float | None) -> dict:
     """One random design through ``method``: a row with its outcome and parameters."""
     import time
@@ -289,10 +312,7 @@ def _fuzz_design(rng: np.random.Generator, method: Method, increments: int, limi
     t0 = time.perf_counter()
     params: dict = {}
     try:
-        design, extra = random_design(rng)
-        verts = top_vertices(design.patch())
-        vertex = verts[int(rng.integers(len(verts)))]
-        xy = (float(vertex[0]), float(vertex[1]))
+        design, extra, xy = fuzz_case(rng)
         extra["load_x"], extra["load_y"] = xy
         params = {**asdict(design), **extra}
         scene = Scene("fuzz", design, "contact", extra["coupling"], xy)
