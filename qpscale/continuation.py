@@ -661,8 +661,11 @@ class Path:
                 # into the same neighbouring basin (fuzz design 632: F_c* 1.793 from the other
                 # basin against 1.902 on the branch); there the bisection brings the starts close.
                 follow = self.solve(last, eq.delta, len(states), descent=True).state
-                below = follow is not None and self.tilt_of(follow) < self.phi_c
-                if follow is not None and below and not self.snapped(last, follow):
+                if (
+                    follow is not None
+                    and self.tilt_of(follow) < self.phi_c
+                    and not self.snapped(last, follow)
+                ):
                     sv_follow = self.stability(follow) if self.settings.check else None
                     if sv_follow is None or sv_follow.stable:
                         eq, sv, flagged = follow, sv_follow, False
