@@ -21,6 +21,20 @@ from .cases import fuzz_setup, work_balance
 LOOPED = {"hexagon-54-45": 7}
 
 
+def _reaches_phi_c_verified_and_balanced(setup: PunctureSetup, max_levels: int):
+    """Run ``setup`` and check what every path here must show: it ends at phi_c, its F_c is verified
+    against the exact active-set solution, it takes fewer than ``max_levels`` load levels, and the
+    load's work equals the stored energy plus the releases at located snaps to 2e-3 (the step
+    control keeps the quadrature error within 1e-3 of each step's work).  Returns the result."""
+    result = run_puncture(setup)
+    assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
+    assert result.Fc_check is not None and result.Fc_check.status == "verified"
+    assert result.load_levels < max_levels
+    work, balance = work_balance(setup, result)
+    assert work == pytest.approx(balance, rel=2e-3)
+    return result
+
+
 # Design 140 of the same grid (seed 1000): a 3x3 staggered triangle array that ran out of its 30
 # CPU-s.  A confirmed instability's landing lay 6e-8 L above the state before it, and the secant
 # of those two states, over the next step of 0.03 L, started the level in another basin; its
@@ -31,13 +45,7 @@ LEAPT = 140
 def test_a_step_after_a_landing_is_not_extrapolated_across_it():
     # Measured: 134 levels, F_c* = 1.4264132405, verified against the exact active-set solution.
     # Independent checks: the exact F_c check and the conservation of work (as above).
-    setup = fuzz_setup(LEAPT)
-    result = run_puncture(setup)
-    assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
-    assert result.Fc_check is not None and result.Fc_check.status == "verified"
-    assert result.load_levels < 300
-    work, balance = work_balance(setup, result)
-    assert work == pytest.approx(balance, rel=2e-3)
+    _reaches_phi_c_verified_and_balanced(fuzz_setup(LEAPT), max_levels=300)
 
 
 @pytest.mark.parametrize("name", list(LOOPED))
@@ -48,15 +56,9 @@ def test_a_looping_event_location_now_reaches_phi_c_with_its_work_balanced(name)
     # levels.  Independent check, a conservation law: the load's work equals the stored energy at
     # failure plus the energy released at located snaps (the step control keeps the quadrature
     # error within 1e-3 of each step's work).
-    setup = fuzz_setup(LOOPED[name])
-    result = run_puncture(setup)
-    assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
-    assert result.Fc_check is not None and result.Fc_check.status == "verified"
+    result = _reaches_phi_c_verified_and_balanced(fuzz_setup(LOOPED[name]), max_levels=400)  # 808 before
     unconfirmed = [e.delta for e in result.events if e.kind == "branch" and not e.confirmed]
     assert len(unconfirmed) <= 1, unconfirmed
-    assert result.load_levels < 400  # levels solved (808 before)
-    work, balance = work_balance(setup, result)
-    assert work == pytest.approx(balance, rel=2e-3)
 
 
 def test_a_step_that_leapt_into_a_neighbouring_basin_is_followed_not_bisected():
@@ -76,12 +78,7 @@ def test_a_step_that_leapt_into_a_neighbouring_basin_is_followed_not_bisected():
     setup = PunctureSetup(
         design=design, interaction="contact", nu=NU_S, load_point=(-1.5196713713031853, -0.8773826753016617)
     )
-    result = run_puncture(setup)
-    assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
-    assert result.Fc_check is not None and result.Fc_check.status == "verified"
-    assert result.load_levels < 150
-    work, balance = work_balance(setup, result)
-    assert work == pytest.approx(balance, rel=2e-3)
+    _reaches_phi_c_verified_and_balanced(setup, max_levels=150)
 
 
 # Design 632 of the same grid: its step across phi_c leapt into a neighbouring basin too.
@@ -96,11 +93,7 @@ def test_a_leap_across_phi_c_is_bisected_and_the_failure_stays_on_the_branch():
     # the stored energy (no snap recorded).  A followed state past phi_c is not taken: the step
     # is bisected and the failure located on the branch, F_c* = 1.9018117 (measured).
     # Independent checks: the exact F_c check and the conservation of work.
-    setup = fuzz_setup(PAST_PHI_C)
-    result = run_puncture(setup)
-    assert result.Fc_check is not None and result.Fc_check.status == "verified"
-    work, balance = work_balance(setup, result)
-    assert work == pytest.approx(balance, rel=2e-3)
+    _reaches_phi_c_verified_and_balanced(fuzz_setup(PAST_PHI_C), max_levels=150)  # 56 measured
 
 
 def test_an_inner_bracket_returns_to_the_nearest_open_ceiling_above_the_state():
