@@ -447,7 +447,10 @@ class _SequentialQP:
         F, residuals = float(np.asarray(res.y)[0]), dict(res.residuals or {})
         answer = Equilibrium(q, at.delta, F, cs, lam if cs is not None else np.zeros(0), 0, 0.0, residuals)
         labels = cs.labels if cs is not None else ()
-        return replace(step, answer=answer, dx=x[: q.size].reshape(q.shape), rows=cs, labels=labels)
+        swing = float(np.max(np.abs(theta), initial=0.0))
+        return replace(
+            step, answer=answer, dx=x[: q.size].reshape(q.shape), rows=cs, labels=labels, swing=swing
+        )
 
     def penetration(self, q: np.ndarray) -> float:
         return penetration(self.at.patch, q) if self.at.contact is not None else 0.0

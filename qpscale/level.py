@@ -45,6 +45,10 @@ ANDERSON_GROWTH = 2.0
 # MIN_RELAXATION, and stays so for the rest of the level.
 REVERSAL = -0.5
 MIN_RELAXATION = 1.0 / 16.0
+# A step within the test that swung no plane is accepted without the confirming linearisation
+# when its DOF step is also below step_tol / CONFIRM_FREE (sec. 4, eq. (5b)): at the test itself
+# the accepted states were one contraction short and the energy balance flagged kinks as jumps.
+CONFIRM_FREE = 10.0
 
 L = TypeVar("L")  # one linearisation of a level problem
 S = TypeVar("S")  # the converged state of a level
@@ -156,6 +160,10 @@ class Step(Generic[S]):
         Iterations the step counts for (1 for a QP, the Newton steps of the penalty system).
     retried : str or None
         The first status of a QP answered only on its retry (``qp_retry``).
+    swing : float
+        The largest step of the unknowns beside the DOFs that the next linearisation sees (the
+        separating planes' rotations and shifts, in rad and L); 0 when there are none; inf (the
+        default) when the problem does not report it, and then every converged step is confirmed.
     """
 
     answer: S | None = None
@@ -166,6 +174,7 @@ class Step(Generic[S]):
     seconds: float = 0.0
     work: int = 1
     retried: str | None = None
+    swing: float = float("inf")
 
 
 @dataclass(frozen=True)
@@ -207,7 +216,8 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
 
     Linearise, solve, step; converged when ``max |dx| <= step_tol``, eq. (5), twice in a row (the
     second linearisation with the rows as the first step left them: a plane's swing about its
-    hinge moves no DOF in the step that makes it), and then only if
+    hinge moves no DOF in the step that makes it) or once by eq. (5b), a step that swung no plane
+    (``Step.swing``) and moved the DOFs by at most a tenth of the test, and then only if
     the exact penetration at ``x + dx`` is at most ``penetration_tol``, eq. (6), otherwise the
     iteration goes on with the overlapping pairs' planes refreshed.  While the row set keeps its
     labels the iterates are Anderson-accelerated (DOFs and planes together, ``_accelerated``).
@@ -255,10 +265,11 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
             if pen > c.penetration_tol:
                 refresh, confirmed = c.penetration_tol, False
                 continue
-            if not confirmed:
+            if not confirmed and max(step.swing, CONFIRM_FREE * size) > c.step_tol:
                 # One more linearisation, with the rows as the step left them: a separating plane
                 # may swing about its hinge in a step that moves x by nothing, and the state is a
                 # fixed point only if the next step, with the plane where it swung, is small too.
+                # A step that swung nothing and is well inside the test needs no second look (5b).
                 confirmed = True
                 continue
             state = problem.state(x, step.answer, Progress(work, pen, build_s, solve_s, tightened))

@@ -147,6 +147,50 @@ def test_stall_is_a_window_without_halving_below_the_band():
     assert not any(level._stalled(high[: k + 1]) for k in range(len(high)))
 
 
+class _Contraction:
+    """A level problem whose step contracts by ``rate`` towards ``x*`` = 1 and reports ``swing``:
+    the DOF test (5) and the swing rule (5b) of the level driver, with no QP in the way."""
+
+    def __init__(self, rate: float, swing: float):
+        self.rate, self.swing, self.linearisations = rate, swing, 0
+        self.controls = level.LevelControls("test", 0.0, 0, 1e-8, 1e-9, 60, anderson_depth=0)
+
+    def linearise(self, x, rows, refresh):
+        self.linearisations += 1
+        return x
+
+    def solve(self, lin, tightened):
+        dx = (1.0 - self.rate) * (1.0 - lin)
+        return level.Step(answer=lin, dx=dx, labels=("rows",), swing=self.swing)
+
+    def penetration(self, x):
+        return 0.0
+
+    def state(self, x, answer, progress):
+        return x
+
+
+@pytest.mark.parametrize("swing", [0.0, 5e-9, 2e-8, float("inf")])
+def test_a_step_that_swung_no_plane_and_is_well_inside_the_test_needs_no_confirmation(swing):
+    # From x = 0 the steps are 0.999 * 1e-3^(k-1): the fourth, 1e-9, is within the step test
+    # (1e-8) and within a tenth of it.  With the planes still (swing <= step_tol) rule (5b)
+    # accepts it: four linearisations, the state 1e-12 from x*.  A swing above the test, or one
+    # the problem does not report (inf), asks for the confirming fifth, as the test (5) alone did.
+    problem = _Contraction(rate=1e-3, swing=swing)
+    out = level.solve(problem, np.zeros(1))
+    assert out.converged
+    error = abs(float(out.state[0]) - 1.0)
+    if swing <= problem.controls.step_tol:
+        assert problem.linearisations == 4 and error == pytest.approx(1e-12, rel=1e-3)
+    else:
+        assert problem.linearisations == 5 and error < 1e-14
+    # A contraction too slow for (5b) (the first step within the test is 0.9e-8, not a tenth of
+    # it) is confirmed whatever the swing: same count either way.
+    slow = [_Contraction(rate=0.1, swing=w) for w in (0.0, float("inf"))]
+    assert [level.solve(p, np.zeros(1)).converged for p in slow] == [True, True]
+    assert slow[0].linearisations == slow[1].linearisations == 10
+
+
 @pytest.mark.parametrize(
     ("accuracy", "step", "pen"), [("high", 1e-8, 1e-9), ("mid", 1e-5, 1e-6), ("low", 1e-2, 1e-3)]
 )

@@ -680,15 +680,17 @@ class _FlexureLevel:
             return step
         x, zs = np.asarray(res.x), np.asarray(res.z)
         n, lam = len(z), zs[n_plate + len(self.model.support_idx) :]
+        swing = 0.0
         if cs is not None and cs.planes is not None and cs.planes.count:
             theta = _pinned_only(x[n:], cs, lam, violated=self.damped)
+            swing = float(np.max(np.abs(theta), initial=0.0))
             self.pressed = _pressed_planes(cs, lam)
             cs = merged = replace(cs, plane_memory=cs.planes.advanced(theta))
             if self.damped:
                 self.damping.update(cs, theta, lam)
         answer = FlexureState(self.w, float(np.sum(zs[:n_plate])), z, merged, lam, 0, 0.0)
         labels = _set_keys(merged, self.model.setup.formulation)
-        return replace(step, answer=answer, dx=x[:n] - z, rows=cs, labels=labels)
+        return replace(step, answer=answer, dx=x[:n] - z, rows=cs, labels=labels, swing=swing)
 
     def penetration(self, z: Array) -> float:
         return _exact_penetration(self.model, z, self.z_plate)
