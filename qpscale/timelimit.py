@@ -48,6 +48,11 @@ def enforceable(clock: str = "wall") -> bool:
     return has_async and (clock == "wall" or hasattr(time, "pthread_getcpuclockid"))
 
 
+# Poll period of the watchdog on the CPU clock, seconds: the limit is met within this (and the
+# next Python bytecode); a wall-clock watchdog waits the whole remaining time in one call.  Also
+# the period at which a limit that has fired is raised again until its body is left.
+CPU_POLL_S = 0.05
+
 # Interval timer and its signal: wall-clock time, or the process's CPU time (user + system).
 _CLOCKS = {"wall": ("ITIMER_REAL", "SIGALRM"), "cpu": ("ITIMER_PROF", "SIGPROF")}
 
@@ -77,21 +82,17 @@ def time_limit(seconds: float | None, clock: str = "wall") -> Iterator[None]:
     timer, signum = (getattr(signal, name) for name in _CLOCKS[clock])
 
     def _raise(sig: int, frame: object) -> None:
-        signal.setitimer(timer, 0.0)
         raise TimeLimitReached(float(seconds), clock)
 
+    # The timer repeats every CPU_POLL_S until the body is left: a raise that lands where the
+    # interpreter ignores errors (see ``_watchdog``) is followed by the next.
     previous = signal.signal(signum, _raise)
-    signal.setitimer(timer, float(seconds))
+    signal.setitimer(timer, float(seconds), CPU_POLL_S)
     try:
         yield
     finally:
         signal.setitimer(timer, 0.0)
         signal.signal(signum, previous)
-
-
-# Poll period of the watchdog on the CPU clock, seconds: the limit is met within this (and the
-# next Python bytecode); a wall-clock watchdog waits the whole remaining time in one call.
-CPU_POLL_S = 0.05
 
 
 def _thread_clock(clock: str) -> Callable[[], float]:
@@ -113,8 +114,9 @@ def _watchdog(seconds: float, clock: str) -> Iterator[None]:
     this one once ``seconds`` have passed on ``clock``.
 
     The asynchronous exception is a class raised without arguments, so a subclass carries the
-    limit.  A lock orders the two ends: once the body is done the watchdog cannot fire, and an
-    exception it set that the body had no time to see is withdrawn.
+    limit; it is raised again every ``CPU_POLL_S`` until the body ends (one can be swallowed where
+    the interpreter ignores errors).  A lock orders the two ends: once the body is done the
+    watchdog cannot fire, and an exception it set that the body had no time to see is withdrawn.
     """
     ident = threading.get_ident()
     now = _thread_clock(clock)
@@ -132,10 +134,18 @@ def _watchdog(seconds: float, clock: str) -> Iterator[None]:
     def watch() -> None:
         while not done.wait(max(t_end - now(), 0.0) if clock == "wall" else CPU_POLL_S):
             if now() >= t_end:
-                with lock:
-                    if not done.is_set():
-                        _set_async(ident, _Reached)
-                        fired.append(True)
+                break
+        # Raised again every CPU_POLL_S until the body is done: an asynchronous exception that
+        # arrives inside a callback whose errors the interpreter ignores (a garbage-collection
+        # callback of Dask's worker printed "Exception ignored" and the run went on to its end)
+        # is lost, and the next one stops the run.
+        while True:
+            with lock:
+                if done.is_set():
+                    return
+                _set_async(ident, _Reached)
+                fired.append(True)
+            if done.wait(CPU_POLL_S):
                 return
 
     watcher = threading.Thread(target=watch, name="qpscale-time-limit", daemon=True)
