@@ -307,15 +307,22 @@ def test_piqp_needs_its_iterative_refinement_on_held_symmetric_qps():
 def test_piqp_has_the_iterations_hinged_planes_need():
     # A QP of the 5x5 dart array slanted 60 deg towards 90 deg (125 DOFs, 130 planes, 881 rows)
     # on which the path stopped: PIQP's last iterations stagnate at the table's tolerance and it
-    # needs 204 of them, so the former limit of 200 stopped it.  With the table's limit it solves
-    # within our own residual check at 1e-9, and its DOFs are Clarabel's (an independent
+    # needs 204 of them, so the former limit of 200 stopped it (its point, judged then by the
+    # status, was rejected).  With the table's limit it solves within our own residual check at
+    # 1e-9, and its DOFs are Clarabel's (an independent
     # interior-point method) to 1e-8, the two answers' accuracy (each within 1e-9 residuals on a
     # QP whose plane unknowns weigh 1e-6) (formulations/increment-qp.md table 1).
     from qpscale.qp import accept, backend_options
 
     qp = _stored_qp("slanted_dart_qp.npz")
     former = {**backend_options("piqp", 1e-9), "max_iter": 200}
-    assert accept(solvers._REGISTRY["piqp"](qp, former, None), 1e-9).status == "PIQP_MAX_ITER_REACHED"
+    stopped = solvers._REGISTRY["piqp"](qp, former, None)
+    assert stopped.status == "PIQP_MAX_ITER_REACHED" and stopped.extras["stopped_at_limit"]
+    # Its point at the limit is judged by our residuals (table 1): within 1e-9 here, so accepted.
+    assert accept(stopped, 1e-9).found and max(stopped.residuals.values()) <= 1e-9
+    # Far from the solution the point at the limit is rejected by the same check.
+    early = accept(solvers._REGISTRY["piqp"](qp, {**former, "max_iter": 5}, None), 1e-9)
+    assert not early.found and early.extras["rejected_by"] == "residuals"
     r = solve_qp(qp, "piqp", "high")
     assert not r.extras.get("retried") and max(r.residuals.values()) <= 1e-9
     ref = solve_qp(qp, "clarabel", "high")
