@@ -232,6 +232,62 @@ def _with_mirror(qp: IncrementQP, mirror: Mirror, q: np.ndarray, cs: ContactSet 
     )
 
 
+@dataclass(frozen=True)
+class HeldBasis:
+    """The unknowns of a held QP: ``x = x0 + Z xi`` (formulations/increment.md sec. 2, "Held symmetry").
+
+    ``Z`` (CSC, orthonormal columns) spans the increments that keep the configuration and the
+    separating planes symmetric; ``x0`` takes the configuration back onto the symmetric subspace
+    (the least-norm solution of ``mirror.dof_rows (q + dq) = 0``, round-off in practice).
+    """
+
+    Z: sp.csc_matrix
+    x0: np.ndarray
+
+    def lift(self, xi: np.ndarray) -> np.ndarray:
+        """The full unknowns of the reduced answer ``xi``."""
+        return self.x0 + self.Z @ xi
+
+
+def _held(
+    qp: IncrementQP, mirror: Mirror, q: np.ndarray, cs: ContactSet | None
+) -> tuple[IncrementQP, HeldBasis]:
+    """The held QP in the reduced unknowns xi of :class:`HeldBasis` (sec. 2, Held symmetry).
+
+    The same problem as ``_with_mirror``'s, with its equalities solved instead of appended: the
+    DOF columns ``mirror.dof_basis``, each plane orbit's null space (``Mirror.plane_basis``),
+    ``P_r = Z' P Z`` and the rows ``G Z``, ``A Z``.  About half the unknowns and only the load's
+    equality (the default path's held QPs: 169 of 341 unknowns and 1 of 174 equalities); a
+    mirror pair of contact rows becomes one row written twice.
+    """
+    Zq = mirror.dof_basis
+    nq = Zq.shape[0]
+    D = mirror.dof_rows
+    parts = [Zq]
+    if qp.n > nq:
+        planes = cs.planes if cs is not None else None
+        if planes is None or 3 * planes.count != qp.n - nq:
+            raise ValueError("held QP: extra unknowns that are not plane unknowns")
+        parts.append(mirror.plane_basis(planes.keys, planes.point, planes.basis))
+    Z = sp.block_diag(parts, format="csc") if len(parts) > 1 else Zq
+    x0 = np.zeros(qp.n)
+    x0[:nq] = -(D.T @ (D @ q.reshape(-1)))
+    G, h, A, b = qp.rows()
+    ZT = sp.csr_matrix(Z.T)
+    P = sp.csc_matrix(ZT @ qp.P @ Z)
+    P = 0.5 * (P + P.T)
+    reduced = IncrementQP.assembled(
+        sp.csc_matrix(P),
+        ZT @ (qp.P @ x0 + qp.q),
+        sp.csc_matrix(G @ Z),
+        h - G @ x0,
+        sp.csc_matrix(A @ Z),
+        b - A @ x0,
+        tuple(qp.row_labels_A or ("load",)),
+    )
+    return reduced, HeldBasis(Z, x0)
+
+
 class PlaneDamping:
     """Trust region of the separating planes' normals: a proximal weight per pressed plane.
 
@@ -374,7 +430,7 @@ class PunctureLevel:
         set (its planes as they are, the memory the second variation reads).  At a converged
         state the QP's solution is dq ~ 0: its exact solution checks the state (``certify``) and
         its multiplier set decides the state's stability (``multipliers``)."""
-        _, qp, cs = _SequentialQP(self).linearise(self.q0, self.previous, None)
+        _, qp, cs, _ = _SequentialQP(self, reduced=False).linearise(self.q0, self.previous, None)
         if cs is not None and cs.planes is not None:
             cs = replace(cs, plane_memory=cs.planes.advanced(np.zeros(3 * cs.planes.count)))
         return qp, cs
@@ -401,8 +457,9 @@ class PunctureLevel:
         return replace(second, rescues=first.rescues + (fired,) + second.rescues, solves=solves)
 
 
-# The increment QP linearised at a configuration q (its contact set, None without contact).
-_Linearised = tuple[np.ndarray, IncrementQP, ContactSet | None]
+# The increment QP linearised at a configuration q, its contact set (None without contact) and,
+# on a held path, the basis its reduced unknowns lift through (None: the QP's unknowns are x).
+_Linearised = tuple[np.ndarray, IncrementQP, ContactSet | None, HeldBasis | None]
 
 
 class _SequentialQP:
@@ -414,9 +471,9 @@ class _SequentialQP:
     of the pressed planes (``PlaneDamping``, the attempt's memory).
     """
 
-    def __init__(self, at: PunctureLevel) -> None:
+    def __init__(self, at: PunctureLevel, reduced: bool = True) -> None:
         s = at.settings
-        self.at, self.damping = at, PlaneDamping()
+        self.at, self.damping, self.reduced = at, PlaneDamping(), reduced
         self.controls = level.LevelControls(
             s.solver, at.delta, at.increment, s.step_tol, s.penetration_tol, s.max_iter, s.anderson_depth
         )
@@ -429,15 +486,21 @@ class _SequentialQP:
         J = gap_jacobian(cs, at.patch, q) if cs is not None and len(cs.gap) else None
         weight = self.damping.weights(cs) if damped and cs is not None and cs.n_extra else None
         qp = assemble_increment(at.K, q, at.load, at.delta, cs, J, weight)
-        return (q, qp if at.mirror is None else _with_mirror(qp, at.mirror, q, cs), cs)
+        if at.mirror is None:
+            return (q, qp, cs, None)
+        if not self.reduced:
+            return (q, _with_mirror(qp, at.mirror, q, cs), cs, None)
+        reduced, held = _held(qp, at.mirror, q, cs)
+        return (q, reduced, cs, held)
 
     def solve(self, lin: _Linearised, tightened: bool) -> level.Step[Equilibrium]:
-        q, qp, cs = lin
+        q, qp, cs, held = lin
         at, s = self.at, self.at.settings
         res, step = level.qp_step(qp, s.solver, s.accuracy, tightened, at.increment)
         if res is None:
             return step
-        x, lam = np.asarray(res.x), np.asarray(res.z)
+        x = np.asarray(res.x) if held is None else held.lift(np.asarray(res.x))
+        lam = np.asarray(res.z)
         theta = x[q.size :]
         if cs is not None and cs.planes is not None and len(theta):
             theta = _pinned_only(theta, cs, lam, violated=True, mirror=at.mirror)

@@ -147,6 +147,43 @@ def test_sparse_antisymmetric_rows_span_the_reversed_modes(rings, point):
     assert np.abs(Dd.T @ Dd - ref @ ref.T).max() < 1e-14
 
 
+@pytest.mark.parametrize(("rings", "point"), [(1, (1.0, 1.0)), (2, (0.0, 1.0))])
+def test_symmetric_basis_spans_the_kept_modes(rings, point):
+    # Independent value: the eigenvectors of eigenvalue +1 of the dense map S (as above).  The
+    # sparse columns must be orthonormal and give the same projector, I - D'D (round-off).
+    from qpscale.contact.symmetry import symmetric_basis
+
+    patch = Design(rings=rings).patch()
+    n = patch.n_scales
+    M, perm = mirror_through(patch, np.array(point))
+    Z = symmetric_basis(n, M, perm).toarray()
+    S = np.column_stack([map_dofs(e.reshape(n, 5), M, perm).ravel() for e in np.eye(5 * n)])
+    w, V = np.linalg.eigh(0.5 * (S + S.T))
+    ref = V[:, w > 0]
+    assert np.abs(Z.T @ Z - np.eye(Z.shape[1])).max() < 1e-14
+    assert np.abs(Z @ Z.T - ref @ ref.T).max() < 1e-14
+
+
+def test_plane_basis_is_the_null_space_of_the_plane_rows(corner):
+    # The reduced unknowns of a held QP: the columns must be orthonormal, obey the rows (eq. (27))
+    # and, with the rows, span every plane increment (rank 3 P).  A plane of a pair is dropped
+    # from the set so that one whose image is absent (three free unknowns) is covered too.
+    _, patch, _, mirror = corner
+    planes = detect_contacts(patch, _symmetric_q(patch, mirror), mirror=mirror).planes
+    image, _ = mirror.plane_images(planes.keys)
+    paired = int(np.flatnonzero(image != np.arange(planes.count))[0])
+    for keep in (np.arange(planes.count), np.delete(np.arange(planes.count), paired)):
+        keys = [planes.keys[k] for k in keep]
+        assert (mirror.plane_images(keys)[0] < 0).sum() == (len(keep) < planes.count)
+        point, basis = planes.point[keep], planes.basis[keep]
+        rows = mirror.plane_rows(keys, planes.normal[keep], point, basis).toarray()
+        Z = mirror.plane_basis(keys, point, basis).toarray()
+        assert np.abs(Z.T @ Z - np.eye(Z.shape[1])).max() < 1e-14
+        assert np.abs(rows @ Z).max() < 1e-14
+        assert len(rows) + Z.shape[1] == 3 * len(keys)
+        assert np.linalg.matrix_rank(np.vstack([rows, Z.T]), tol=1e-10) == 3 * len(keys)
+
+
 def test_plane_images_match_a_key_by_key_reference(corner):
     # The vectorised look-up against the definition, one key at a time: the image of (a, pa, b, pb)
     # is the pair of the images, reordered (with s = -1) when the images come in the other order.

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -83,6 +84,44 @@ def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csr_matrix
     return out
 
 
+def symmetric_basis(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csc_matrix:
+    """Columns ``(5 n, k)`` (sparse, orthonormal) spanning the DOF modes the reflection keeps.
+
+    The complement of :func:`antisymmetric_rows`: the range of (I + S) / 2, orbit by orbit.  For
+    a pair of scales i -> p != i the five columns (e_ik + S e_ik) / sqrt 2; for a scale on the
+    mirror the eigenvectors of eigenvalue +1 of its own 5 x 5 block.  A symmetric increment is
+    ``dq = Z xi``: the held path's QP in the reduced unknowns xi (formulations/increment.md sec. 2,
+    "Held symmetry").
+    """
+    M = np.asarray(M, dtype=float)
+    perm = np.asarray(perm, dtype=int)
+    B = np.zeros((5, 5))
+    B[:2, :2] = M
+    B[2, 2] = 1.0
+    B[3:5, 3:5] = np.linalg.det(M) * M
+    scales = np.arange(n)
+    pairs = scales[perm > scales]
+    w, V = np.linalg.eigh(0.5 * (B + B.T))
+    own = V[:, w > 0]  # (5, k): the kept modes of a scale mapped onto itself
+    fixed = scales[perm == scales]
+    k = np.arange(5)
+    pc = np.repeat(np.arange(5 * len(pairs)), 6)
+    rows_i = 5 * pairs[:, None] + k
+    rows_p = 5 * perm[pairs][:, None, None] + np.broadcast_to(k, (5, 5))
+    vals = np.concatenate([np.ones((len(pairs), 5, 1)), np.broadcast_to(B.T, (len(pairs), 5, 5))], axis=2)
+    vals = vals / np.sqrt(2.0)
+    rows = np.concatenate([rows_i[:, :, None], rows_p], axis=2)
+    fc = 5 * len(pairs) + np.repeat(np.arange(own.shape[1] * len(fixed)), 5)
+    frows = (5 * fixed[:, None, None] + np.broadcast_to(k[:, None], (5, own.shape[1])).T).reshape(-1)
+    fvals = np.broadcast_to(own.T, (len(fixed), own.shape[1], 5)).reshape(-1)
+    c = 5 * len(pairs) + own.shape[1] * len(fixed)
+    out = sp.csc_matrix(
+        (np.r_[vals.ravel(), fvals], (np.r_[rows.ravel(), frows], np.r_[pc, fc])), shape=(5 * n, c)
+    )
+    out.eliminate_zeros()
+    return out
+
+
 def _piece_images(patch: Patch, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
     """``(n, P)``: the piece of scale ``perm[i]`` that piece ``p`` of scale ``i`` maps onto."""
     bodies = bodies_of(patch)
@@ -141,6 +180,11 @@ class Mirror:
             np.r_[patch.centroids[0], 0.0],
             antisymmetric_rows(patch.n_scales, M, perm),
         )
+
+    @cached_property
+    def dof_basis(self) -> sp.csc_matrix:
+        """Orthonormal columns ``(5 n, k)`` spanning the symmetric DOF modes (:func:`symmetric_basis`)."""
+        return symmetric_basis(len(self.perm), self.M, self.perm)
 
     @property
     def M3(self) -> Array:
@@ -207,6 +251,40 @@ class Mirror:
         p[js] = 0.5 * (point[js] + c + (point[i] - c) @ R.T)
         return n, p
 
+    def _plane_orbits(
+        self, keys: Sequence[PlaneKey], point: Array, basis: Array
+    ) -> tuple[np.ndarray, np.ndarray, Array]:
+        """One plane per orbit present in ``keys`` (``js``), its image (``i_``), and the orbit's
+        equality block ``(k, 3, 6)`` of eq. (27) on the columns (t_i (2), sigma_i, t_j (2), sigma_j)."""
+        image, sign = self.plane_images(keys)
+        R, c = self.M3, self.centre
+        P = len(keys)
+        js = np.flatnonzero(image >= np.arange(P))
+        i_, s = image[js], sign[js]
+        A = s[:, None, None] * np.einsum("kai,ab,kbj->kij", basis[i_], R, basis[js])  # t_i = A t_j
+        # offset about the centre o_k = n_k . (p_k - c), its increment sigma_k + (E_k t_k) . (p_k - c)
+        lever_j = np.einsum("kaj,ka->kj", basis[js], point[js] - c)
+        lever_i = np.einsum("kaj,ka->kj", basis[i_], point[i_] - c)
+        local = np.zeros((len(js), 3, 6))
+        local[:, :2, :2] = np.eye(2)
+        local[:, :2, 3:5] = -A
+        local[:, 2, 2] = 1.0
+        local[:, 2, :2] = lever_i
+        local[:, 2, 5] = -s
+        local[:, 2, 3:5] = -s[:, None] * lever_j
+        return js, i_, local
+
+    @staticmethod
+    def _orbit_svd(js: np.ndarray, i_: np.ndarray, local: Array, subset: np.ndarray, own: bool) -> tuple:
+        """SVD of the orbits ``subset``: a pair's 3 x 6 block, or (``own``: planes that are their own
+        images) the 3 x 3 block, both column sets being the same unknowns; with the orbits' columns."""
+        block = local[subset, :, :3] + local[subset, :, 3:] if own else local[subset]
+        _, sv, Vt = np.linalg.svd(block, full_matrices=True)
+        base = 3 * js[subset, None] if own else np.stack([3 * i_[subset], 3 * js[subset]], axis=1)
+        columns = (base[:, :, None] + np.arange(3)).reshape(len(base), -1)
+        rank = sv > _RANK_TOL * np.maximum(1.0, sv[:, :1])
+        return sv, Vt, columns, rank
+
     def plane_rows(
         self, keys: Sequence[PlaneKey], normal: Array, point: Array, basis: Array
     ) -> sp.csr_matrix:
@@ -218,42 +296,56 @@ class Mirror:
         planes, or one plane that is its own image) gives its rows at once, reduced to an
         orthonormal independent set (a plane on the mirror keeps one rotation free).
         """
-        image, sign = self.plane_images(keys)
-        R, c = self.M3, self.centre
         P = len(keys)
-        js = np.flatnonzero(image >= np.arange(P))  # one plane per orbit present in the set
+        js, i_, local = self._plane_orbits(keys, point, basis)
         if not len(js):
             return sp.csr_matrix((0, 3 * P))
-        i_, s = image[js], sign[js]
-        A = s[:, None, None] * np.einsum("kai,ab,kbj->kij", basis[i_], R, basis[js])  # t_i = A t_j
-        # offset about the centre o_k = n_k . (p_k - c), its increment sigma_k + (E_k t_k) . (p_k - c)
-        lever_j = np.einsum("kaj,ka->kj", basis[js], point[js] - c)
-        lever_i = np.einsum("kaj,ka->kj", basis[i_], point[i_] - c)
-        local = np.zeros((len(js), 3, 6))  # columns: t_i (2), sigma_i, t_j (2), sigma_j
-        local[:, :2, :2] = np.eye(2)
-        local[:, :2, 3:5] = -A
-        local[:, 2, 2] = 1.0
-        local[:, 2, :2] = lever_i
-        local[:, 2, 5] = -s
-        local[:, 2, 3:5] = -s[:, None] * lever_j
-        own = i_ == js  # a plane that is its own image: both column sets are the same
+        own = i_ == js
         vals = np.zeros((len(js), 3, 6))
         cols = np.zeros((len(js), 3, 6), dtype=int)
         keep = np.zeros((len(js), 3), dtype=bool)
-        for subset, width in ((~own, 6), (own, 3)):
+        for subset, is_own in ((~own, False), (own, True)):
             if not subset.any():
                 continue
-            block = local[subset] if width == 6 else local[subset, :, :3] + local[subset, :, 3:]
-            _, sv, Vt = np.linalg.svd(block, full_matrices=False)
-            base = np.stack([3 * i_[subset], 3 * js[subset]], axis=1) if width == 6 else 3 * js[subset, None]
-            columns = (base[:, :, None] + np.arange(3)).reshape(len(base), -1)
-            nr = Vt.shape[1]
-            vals[subset, :nr, :width] = Vt
-            cols[subset, :nr, :width] = columns[:, None, :]
-            keep[subset, :nr] = sv > _RANK_TOL * np.maximum(1.0, sv[:, :1])
+            sv, Vt, columns, rank = self._orbit_svd(js, i_, local, subset, is_own)
+            width = columns.shape[1]
+            vals[subset, :, :width] = Vt[:, :3]
+            cols[subset, :, :width] = columns[:, None, :]
+            keep[subset] = rank
         vals, cols = vals[keep], cols[keep]  # (r, 6), in orbit order
         rows = np.repeat(np.arange(len(vals)), 6)
         out = sp.csr_matrix((vals.ravel(), (rows, cols.ravel())), shape=(len(vals), 3 * P))
+        out.eliminate_zeros()
+        return out
+
+    def plane_basis(self, keys: Sequence[PlaneKey], point: Array, basis: Array) -> sp.csc_matrix:
+        """Columns ``(3 P, k)`` (sparse, orthonormal) spanning the plane increments that
+        :meth:`plane_rows` allows: each orbit's null space (the right singular vectors of its
+        block beyond its rank), and the three unknowns of a plane whose image is absent."""
+        P = len(keys)
+        image, _ = self.plane_images(keys)
+        js, i_, local = self._plane_orbits(keys, point, basis)
+        own = i_ == js
+        lone = np.flatnonzero(image < 0)
+        rows = [(3 * lone[:, None] + np.arange(3)).ravel()]
+        vals = [np.ones(3 * len(lone))]
+        cols = [np.arange(3 * len(lone))]
+        at = 3 * len(lone)
+        for subset, is_own in ((~own, False), (own, True)):
+            if not subset.any():
+                continue
+            _, Vt, columns, rank = self._orbit_svd(js, i_, local, subset, is_own)
+            width = columns.shape[1]
+            free = np.ones((len(columns), width), dtype=bool)
+            free[:, :3] = ~rank
+            k, j = np.nonzero(free)  # orbit k's null vector Vt[k, j]
+            rows.append(columns[k].ravel())
+            vals.append(Vt[k, j].ravel())
+            cols.append(np.repeat(at + np.arange(len(k)), width))
+            at += len(k)
+        out = sp.csc_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * P, at)
+        )
         out.eliminate_zeros()
         return out
 
