@@ -42,6 +42,15 @@ def map_dofs(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return out
 
 
+def _scale_map(M: np.ndarray) -> Array:
+    """S on one scale's DOFs ``(5, 5)``: (u_x, u_y) by M, u_z kept, (phi_x, phi_y) by det(M) M."""
+    B = np.zeros((5, 5))
+    B[:2, :2] = M
+    B[2, 2] = 1.0
+    B[3:5, 3:5] = np.linalg.det(M) * M
+    return B
+
+
 def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csr_matrix:
     """Rows ``(r, 5 n)`` (sparse, orthonormal) spanning the DOF modes the reflection (M, perm) reverses.
 
@@ -55,10 +64,7 @@ def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csr_matrix
     """
     M = np.asarray(M, dtype=float)
     perm = np.asarray(perm, dtype=int)
-    B = np.zeros((5, 5))  # S on one scale's DOFs: (u_x, u_y) by M, u_z kept, (phi_x, phi_y) by det(M) M
-    B[:2, :2] = M
-    B[2, 2] = 1.0
-    B[3:5, 3:5] = np.linalg.det(M) * M
+    B = _scale_map(M)
     scales = np.arange(n)
     pairs = scales[perm > scales]
     w, V = np.linalg.eigh(0.5 * (B + B.T))
@@ -95,10 +101,7 @@ def symmetric_basis(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csc_matrix:
     """
     M = np.asarray(M, dtype=float)
     perm = np.asarray(perm, dtype=int)
-    B = np.zeros((5, 5))
-    B[:2, :2] = M
-    B[2, 2] = 1.0
-    B[3:5, 3:5] = np.linalg.det(M) * M
+    B = _scale_map(M)
     scales = np.arange(n)
     pairs = scales[perm > scales]
     w, V = np.linalg.eigh(0.5 * (B + B.T))
