@@ -112,6 +112,39 @@ def test_a_held_state_is_an_equilibrium_of_the_free_problem(corner):
         assert np.max(np.abs(free.q - held.q)) < 1e-7
 
 
+def test_reduced_held_qp_equals_the_qp_with_the_held_rows(corner):
+    # Eq. (4h): solving the held equalities (x = x0 + Z xi) is the same QP as appending them.
+    # Second method: the appended QP, solved by the same backend.  At a held state 0.06 deep and
+    # at a depth step beyond it (planes and contacts pressed), the lifted answer must give the
+    # same DOF increment (1e-8: both answers meet residuals of 1e-9 on a problem whose unknowns
+    # are O(1e-2)) and the same load multiplier F (1e-8 relative), obey the held rows exactly
+    # (round-off) and have about half the unknowns with the load as the only equality.
+    from qpscale.increment import _SequentialQP
+    from qpscale.solvers import solve_qp
+
+    setup, patch, K, mirror = corner
+    load = _load_point(patch, CORNER)
+    path = puncture_path(setup, patch, K, load, mirror=mirror)
+    states = [path.origin()]
+    for delta in (0.03, 0.06):
+        states.append(path.solve(predict(states, delta), delta, len(states)).unwrap())
+    held = states[-1]
+    for delta in (held.delta, held.delta + 0.01):
+        level = PunctureLevel(
+            patch, K, held.q, load, delta, setup.contact, SQPSettings(), previous=held.contacts, mirror=mirror
+        )
+        _, full, cs, none = _SequentialQP(level, reduced=False).linearise(held.q, held.contacts, None)
+        _, small, _, basis = _SequentialQP(level).linearise(held.q, held.contacts, None)
+        assert none is None and basis is not None and cs is not None and cs.planes.count
+        assert small.m_eq == 1 and full.m_eq > 1 and small.n < 0.6 * full.n
+        a, b = solve_qp(full, solver="piqp"), solve_qp(small, solver="piqp")
+        x = basis.lift(np.asarray(b.x))
+        nq = held.q.size
+        assert np.max(np.abs(x[:nq] - np.asarray(a.x)[:nq])) < 1e-8
+        assert float(b.y[0]) == pytest.approx(float(a.y[0]), rel=1e-8)
+        assert np.max(np.abs(full.A[1:] @ x - full.b[1:])) < 1e-12
+
+
 def test_piece_images_swap_the_darts_pieces():
     # The dart is cut along its own axis into two convex pieces (geometry.md): the mirror through
     # the loaded dart's axis maps each of its pieces onto the other, and the image of a piece's
