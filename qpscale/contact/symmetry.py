@@ -51,16 +51,12 @@ def _scale_map(M: np.ndarray) -> Array:
     return B
 
 
-def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csr_matrix:
-    """Rows ``(r, 5 n)`` (sparse, orthonormal) spanning the DOF modes the reflection (M, perm) reverses.
+def _orbit_modes(n: int, M: np.ndarray, perm: np.ndarray, sign: float) -> sp.csr_matrix:
+    """Rows ``(r, 5 n)`` (sparse, orthonormal) spanning the range of (I + sign S) / 2, orbit by orbit.
 
-    A configuration is mirror-symmetric exactly when these rows annihilate it; imposed as
-    equalities in the increment QP they hold a path on its symmetric branch.  The map S of
-    :func:`map_dofs` is orthogonal and an involution, so the reversed modes are the range of
-    (I - S) / 2, built orbit by orbit (eq. (25a)): for a pair of scales i -> p != i, the five
-    rows (e_ik - S e_ik) / sqrt 2 (orthonormal, as S e_ik lies on scale p); for a scale on the
-    mirror (p = i), the eigenvectors of eigenvalue -1 of its own 5 x 5 block.  At most ten
-    entries a row: the rows cost memory linear in n.
+    For a pair of scales i -> p != i the five rows (e_ik + sign S e_ik) / sqrt 2 (orthonormal, as
+    S e_ik lies on scale p); for a scale on the mirror (p = i) the eigenvectors of eigenvalue
+    ``sign`` of its own 5 x 5 block.  At most ten entries a row: memory linear in n.
     """
     M = np.asarray(M, dtype=float)
     perm = np.asarray(perm, dtype=int)
@@ -68,15 +64,15 @@ def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csr_matrix
     scales = np.arange(n)
     pairs = scales[perm > scales]
     w, V = np.linalg.eigh(0.5 * (B + B.T))
-    own = V[:, w < 0].T  # (k, 5): the reversed modes of a scale mapped onto itself
+    own = V[:, sign * w > 0].T  # (k, 5): the modes of a scale mapped onto itself
     fixed = scales[perm == scales]
-    # pair rows: e_ik / sqrt 2 on scale i, -(B e_k) / sqrt 2 on scale p
+    # pair rows: e_ik / sqrt 2 on scale i, sign (B e_k) / sqrt 2 on scale p
     k = np.arange(5)
     pr = np.repeat(np.arange(5 * len(pairs)), 6)
     cols_i = 5 * pairs[:, None] + k  # (P, 5)
     cols_p = 5 * perm[pairs][:, None, None] + np.broadcast_to(k, (5, 5))  # (P, 5 (row k), 5)
     vals = np.concatenate(
-        [np.ones((len(pairs), 5, 1)), -np.broadcast_to(B.T, (len(pairs), 5, 5))], axis=2
+        [np.ones((len(pairs), 5, 1)), sign * np.broadcast_to(B.T, (len(pairs), 5, 5))], axis=2
     ) / np.sqrt(2.0)
     cols = np.concatenate([cols_i[:, :, None], cols_p], axis=2)
     fr = 5 * len(pairs) + np.repeat(np.arange(len(own) * len(fixed)), 5)
@@ -90,39 +86,25 @@ def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csr_matrix
     return out
 
 
+def antisymmetric_rows(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csr_matrix:
+    """Rows ``(r, 5 n)`` (sparse, orthonormal) spanning the DOF modes the reflection (M, perm) reverses.
+
+    A configuration is mirror-symmetric exactly when these rows annihilate it; imposed as
+    equalities in the increment QP they hold a path on its symmetric branch.  The map S of
+    :func:`map_dofs` is orthogonal and an involution, so the reversed modes are the range of
+    (I - S) / 2, built orbit by orbit (eq. (25a), :func:`_orbit_modes`).
+    """
+    return _orbit_modes(n, M, perm, -1.0)
+
+
 def symmetric_basis(n: int, M: np.ndarray, perm: np.ndarray) -> sp.csc_matrix:
     """Columns ``(5 n, k)`` (sparse, orthonormal) spanning the DOF modes the reflection keeps.
 
-    The complement of :func:`antisymmetric_rows`: the range of (I + S) / 2, orbit by orbit.  For
-    a pair of scales i -> p != i the five columns (e_ik + S e_ik) / sqrt 2; for a scale on the
-    mirror the eigenvectors of eigenvalue +1 of its own 5 x 5 block.  A symmetric increment is
-    ``dq = Z xi``: the held path's QP in the reduced unknowns xi (formulations/increment.md sec. 2,
-    "Held symmetry").
+    The complement of :func:`antisymmetric_rows`: the range of (I + S) / 2, orbit by orbit.  A
+    symmetric increment is ``dq = Z xi``: the held path's QP in the reduced unknowns xi
+    (formulations/increment.md sec. 2, "Held symmetry").
     """
-    M = np.asarray(M, dtype=float)
-    perm = np.asarray(perm, dtype=int)
-    B = _scale_map(M)
-    scales = np.arange(n)
-    pairs = scales[perm > scales]
-    w, V = np.linalg.eigh(0.5 * (B + B.T))
-    own = V[:, w > 0]  # (5, k): the kept modes of a scale mapped onto itself
-    fixed = scales[perm == scales]
-    k = np.arange(5)
-    pc = np.repeat(np.arange(5 * len(pairs)), 6)
-    rows_i = 5 * pairs[:, None] + k
-    rows_p = 5 * perm[pairs][:, None, None] + np.broadcast_to(k, (5, 5))
-    vals = np.concatenate([np.ones((len(pairs), 5, 1)), np.broadcast_to(B.T, (len(pairs), 5, 5))], axis=2)
-    vals = vals / np.sqrt(2.0)
-    rows = np.concatenate([rows_i[:, :, None], rows_p], axis=2)
-    fc = 5 * len(pairs) + np.repeat(np.arange(own.shape[1] * len(fixed)), 5)
-    frows = (5 * fixed[:, None, None] + np.broadcast_to(k[:, None], (5, own.shape[1])).T).reshape(-1)
-    fvals = np.broadcast_to(own.T, (len(fixed), own.shape[1], 5)).reshape(-1)
-    c = 5 * len(pairs) + own.shape[1] * len(fixed)
-    out = sp.csc_matrix(
-        (np.r_[vals.ravel(), fvals], (np.r_[rows.ravel(), frows], np.r_[pc, fc])), shape=(5 * n, c)
-    )
-    out.eliminate_zeros()
-    return out
+    return sp.csc_matrix(_orbit_modes(n, M, perm, 1.0).T)
 
 
 def _piece_images(patch: Patch, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
