@@ -274,10 +274,9 @@ def _held(
     x0[:nq] = -(D.T @ (D @ q.reshape(-1)))
     G, h, A, b = qp.rows()
     ZT = sp.csr_matrix(Z.T)
-    P = sp.csc_matrix(ZT @ qp.P @ Z)
-    P = 0.5 * (P + P.T)
+    P = ZT @ qp.P @ Z
     reduced = IncrementQP.assembled(
-        sp.csc_matrix(P),
+        sp.csc_matrix(0.5 * (P + P.T)),
         ZT @ (qp.P @ x0 + qp.q),
         sp.csc_matrix(G @ Z),
         h - G @ x0,
