@@ -22,6 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.optimize import linprog, nnls
 
 from .certify import LP_OPTIONS
@@ -63,7 +64,11 @@ NOISE = 100.0
 # The forces of the set's members are bounded by BOX times the force scale (a self-stress is a
 # ray of the set); the cutting planes stop at MAX_CUTS or when their bounds are GAP apart.
 BOX = 10.0
-SUPPORT_LP_OPTIONS = {"primal_feasibility_tolerance": 1e-9, "dual_feasibility_tolerance": 1e-9}
+SUPPORT_LP_SETTINGS = {"tol_gap_abs": 1e-8, "tol_gap_rel": 1e-8, "tol_feas": 1e-8}
+# A support LP's member may leave the set by SUPPORT (force-scale units), the force below which a
+# row is not in the support: at the settings above the interior point answers' rows at zero sit
+# within 6e-9 of it (5x5 dart; at 1e-9 Clarabel ends AlmostSolved 2.8e-8 outside).
+SUPPORT_FEASIBLE = SUPPORT
 MAX_CUTS = 200
 GAP = 1e-10
 # The dense reduced pieces (a d x d matrix per row and per kernel direction, d <= N) are used while
@@ -94,22 +99,46 @@ class MultiplierSet:
 
 def _support_lp(w0: np.ndarray, ker: np.ndarray, k: int, rows: np.ndarray, cap: float, bound: float):
     """``max sum_{i in rows} min(lam_i, cap)`` over ``lam = (w0 + ker u)[:k] >= 0``, ``lam <= bound``:
-    unknowns (u, t); returns the member ``w0 + ker u`` or None.
+    unknowns (u, t); returns the member ``w0 + ker u``, or None when the LP is not solved or its
+    answer leaves the set by more than ``SUPPORT_FEASIBLE`` (force-scale units).
 
-    Solved in units of the force scale (``bound / BOX``) with feasibility tolerances of 1e-9:
-    HiGHS's tolerances are absolute, and in force units (caps of ~2e-3, 103 kernel directions,
-    the 5x5 dart with contact interaction only) it stopped with an unknown status on an LP that
-    ``u = 0`` satisfies."""
+    Solved in units of the force scale (``bound / BOX``) by Clarabel's interior point method.
+    The set is a degenerate polytope: ``w0`` is a vertex with dozens of rows at zero, and the
+    largest value a row reaches over the set spans 1e-11..1e-1 of the force scale (5x5 dart).
+    On such LPs HiGHS at the 1e-9 tolerances this needs stopped with an unknown status (with
+    presolve and without, dual or primal simplex, interior point without crossover), and where
+    it did stop "optimal" its objectives differed by 25 %.  An interior point method is not
+    troubled by degeneracy and ends inside the optimal face, so it loads at once every row the
+    optimum can load (formulations/stability.md sec. 7)."""
+    import clarabel  # only the stability test's degenerate states need it
+
     unit = bound / BOX
     nu, m = ker.shape[1], len(rows)
     K_lam = ker[:k]
+    # [u; t] with A [u; t] + s = b, s >= 0: -lam <= 0, lam <= bound, t_i - lam_i <= 0, t <= cap, -t <= 0
+    eye, zeros = sp.identity(m, format="csc"), sp.csc_matrix((2 * k, m))
+    A = sp.vstack(
+        [
+            sp.hstack([sp.csc_matrix(np.vstack([-K_lam, K_lam, -ker[rows]])), sp.vstack([zeros, eye])]),
+            sp.hstack([sp.csc_matrix((2 * m, nu)), sp.vstack([eye, -eye])]),
+        ],
+        format="csc",
+    )
+    b = np.r_[w0[:k], bound - w0[:k], w0[rows], np.full(m, cap), np.zeros(m)] / unit
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    for key, value in SUPPORT_LP_SETTINGS.items():
+        setattr(settings, key, value)
     c = np.r_[np.zeros(nu), -np.ones(m)]
-    pick = np.hstack([-ker[rows], np.eye(m)])  # t_i - (ker u)_i <= w0_i
-    A_ub = np.vstack([np.hstack([-K_lam, np.zeros((k, m))]), np.hstack([K_lam, np.zeros((k, m))]), pick])
-    b_ub = np.r_[w0[:k], bound - w0[:k], w0[rows]] / unit
-    bounds = [(None, None)] * nu + [(0.0, cap / unit)] * m
-    res = linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs", options=SUPPORT_LP_OPTIONS)
-    return w0 + unit * (ker @ res.x[:nu]) if res.status == 0 else None
+    cones = [clarabel.NonnegativeConeT(len(b))]
+    sol = clarabel.DefaultSolver(sp.csc_matrix((nu + m, nu + m)), c, A, b, cones, settings).solve()
+    if str(sol.status) not in ("Solved", "AlmostSolved"):
+        return None
+    w = w0 + unit * (ker @ np.asarray(sol.x)[:nu])
+    lam = w[:k] / unit
+    if lam.min(initial=0.0) < -SUPPORT_FEASIBLE or lam.max(initial=0.0) > BOX + SUPPORT_FEASIBLE:
+        return None
+    return w
 
 
 def multiplier_set(qp: IncrementQP, force_scale: float) -> MultiplierSet:

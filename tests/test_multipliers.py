@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
+from types import SimpleNamespace
 
+import clarabel
 import numpy as np
 import pytest
+import scipy.sparse as sp
+from scipy.optimize import nnls
 
 from qpscale.certify import solve_exact
 from qpscale.contact.symmetry import Mirror
@@ -13,8 +18,8 @@ from qpscale.continuation import STABILITY_TOL, Bifurcation
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, puncture_path, run_puncture
 from qpscale.experiments.symmetry import mirror_through
 from qpscale.increment import SQPSettings
-from qpscale.multipliers import multiplier_set, uniform_second_variation
-from qpscale.stability import second_variation
+from qpscale.multipliers import BOX, NEAR_LADDER, SUPPORT, multiplier_set, uniform_second_variation
+from qpscale.stability import _null_space, second_variation
 from qpscale.tiling import Design
 
 CORNER = (0.5, 0.5)
@@ -101,3 +106,47 @@ def test_daqp_solves_the_default_scene_and_agrees():
     other = run_puncture(PunctureSetup(sqp=SQPSettings(solver="qpsolvers:daqp")))
     assert ref.branch.branched and other.branch.branched
     assert other.Fc_star == pytest.approx(ref.Fc_star, rel=1e-6)
+
+
+def test_the_support_of_a_degenerate_dart_state_is_every_row_some_member_loads():
+    # A state of the unslanted 5x5 dart (captured, tests/data/dart_support_qp.npz): 240 rows
+    # within 1e-7 L of contact, a 42-dimensional set of balancing forces, the NNLS member a vertex
+    # with 51 rows at zero, and rows whose largest force over the set spans 1e-11..1e-1 of the
+    # force scale.  HiGHS's simplex stopped on its support LP with an unknown status (the paper
+    # lost the scene to it).  Second method: each row's largest force over the set, by an LP of
+    # its own ((w0 + ker u)_j over w0 + ker u >= 0, <= the box), not the support iteration.  A
+    # row that can reach ten times the support threshold must be in the support, and a row in it
+    # must reach half the threshold (the support LPs' members leave the set by at most
+    # SUPPORT_FEASIBLE = the threshold).  Measured: the 218 rows found reach >= 9.5e-8, the 22
+    # others <= 1.0e-9.
+    data = np.load(Path(__file__).parent / "data" / "dart_support_qp.npz")
+    G = sp.csc_matrix((data["G_data"], data["G_indices"], data["G_indptr"]), shape=tuple(data["G_shape"]))
+    a, q, h = data["a"], data["q"], data["h"]
+    qp = SimpleNamespace(q=q, rows=lambda: (G, h, sp.csr_matrix(a), None))
+    scale = float(data["force_scale"])
+    ms = multiplier_set(qp, scale)
+    # the set by its definition (stability.md sec. 7): the state balances within BALANCED at 1e-7 L
+    near = np.flatnonzero(h <= NEAR_LADDER[0])
+    B = np.hstack([G[near].T.toarray(), a[:, None]])
+    x, _ = nnls(np.hstack([B, -a[:, None]]), -q, maxiter=50 * (len(near) + 2))
+    k = len(near)
+    w0 = np.r_[x[:k], x[k] - x[k + 1]]
+    ker = _null_space(B)
+    # HiGHS (simplex or interior point, with or without presolve) stops with an unknown status
+    # on some of these LPs too; Clarabel solves each (in units of the force scale)
+    reach = np.empty(k)
+    nu = ker.shape[1]
+    A = sp.csc_matrix(np.vstack([-ker[:k], ker[:k]]))
+    b = np.r_[w0[:k], BOX * scale - w0[:k]] / scale
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    for j in range(k):
+        sol = clarabel.DefaultSolver(
+            sp.csc_matrix((nu, nu)), -ker[j], A, b, [clarabel.NonnegativeConeT(2 * k)], settings
+        ).solve()
+        assert str(sol.status) == "Solved"
+        reach[j] = w0[j] / scale + ker[j] @ np.asarray(sol.x)
+    in_support = np.isin(near, ms.rows)
+    assert in_support.sum() > 200
+    assert in_support[reach > 10 * SUPPORT].all()
+    assert (reach[in_support] > 0.5 * SUPPORT).all()
