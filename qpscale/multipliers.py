@@ -246,8 +246,10 @@ def _cutting_planes(
             method="highs",
             options=LP_OPTIONS,
         )
-        if res.status != 0:
-            break
+        if res.status != 0:  # the best value is below -tol: unstable is not shown, so no verdict
+            raise SolverFailure(
+                "stability", f"cutting-plane LP: {res.message}", detail="uniform second variation"
+            )
         u, upper = res.x[:nu], float(res.x[nu])
         f, g = value(u)
         if f > best:
@@ -255,6 +257,13 @@ def _cutting_planes(
         if best > -tol or upper - best <= GAP:
             break
         cuts.append((f, g, u))
+    else:
+        if upper > -tol:  # out of cuts with the bound above -tol: neither verdict is shown
+            raise SolverFailure(
+                "stability",
+                f"cutting planes: bound {upper:.3g}, best {best:.3g}",
+                detail="uniform second variation",
+            )
     return best_u
 
 

@@ -12,9 +12,11 @@ import pytest
 import scipy.sparse as sp
 from scipy.optimize import nnls
 
+from qpscale import multipliers
 from qpscale.certify import solve_exact
 from qpscale.contact.symmetry import Mirror
 from qpscale.continuation import STABILITY_TOL, Bifurcation
+from qpscale.errors import SolverFailure
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, puncture_path, run_puncture
 from qpscale.experiments.symmetry import mirror_through
 from qpscale.increment import SQPSettings
@@ -150,3 +152,23 @@ def test_the_support_of_a_degenerate_dart_state_is_every_row_some_member_loads()
     assert in_support.sum() > 200
     assert in_support[reach > 10 * SUPPORT].all()
     assert (reach[in_support] > 0.5 * SUPPORT).all()
+
+
+def _tent(u: np.ndarray) -> tuple[float, np.ndarray]:
+    """mu(u) = min(u - 0.5, 1.5 - u): concave, -0.5 at u = 0, largest (0.5) at u = 1."""
+    a, b = u[0] - 0.5, 1.5 - u[0]
+    return min(a, b), np.array([1.0 if a <= b else -1.0])
+
+
+def test_the_cutting_planes_show_a_stable_member_or_report_their_lp(monkeypatch):
+    # Kelley's method on a tent over lam = 1 + u in [0, 3]: the cut at u = 0 sends the model to
+    # the box's end u = 2 (mu = -0.5), and the two cuts meet at the tent's top u = 1, mu = 0.5
+    # (hand-computed).  An LP that stops with a status
+    # is reported: the best value so far (-0.5) proves nothing, and before it was returned as the
+    # state's verdict (unstable).
+    lam0, N = np.ones(1), np.eye(1)
+    u = multipliers._cutting_planes(_tent, 1, lam0, N, 3.0, 1e-9)
+    assert u == pytest.approx([1.0], abs=1e-12) and _tent(u)[0] == pytest.approx(0.5, abs=1e-12)
+    monkeypatch.setattr(multipliers, "linprog", lambda *a, **k: SimpleNamespace(status=4, message="injected"))
+    with pytest.raises(SolverFailure, match="cutting-plane LP: injected"):
+        multipliers._cutting_planes(_tent, 1, lam0, N, 3.0, 1e-9)
