@@ -106,7 +106,7 @@ def _support_lp(w0: np.ndarray, ker: np.ndarray, k: int, rows: np.ndarray, cap: 
     The set is a degenerate polytope: ``w0`` is a vertex with dozens of rows at zero, and the
     largest value a row reaches over the set spans 1e-11..1e-1 of the force scale (5x5 dart).
     On such LPs HiGHS at the 1e-9 tolerances this needs stopped with an unknown status (with
-    presolve and without, dual or primal simplex, interior point without crossover), and where
+    presolve and without, dual or primal simplex, interior point with or without crossover), and where
     it did stop "optimal" its objectives differed by 25 %.  An interior point method is not
     troubled by degeneracy and ends inside the optimal face, so it loads at once every row the
     optimum can load (formulations/stability.md sec. 7)."""
