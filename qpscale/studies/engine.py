@@ -67,6 +67,23 @@ def dask_setup(worker: Any) -> None:
     """
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logging.getLogger("distributed.worker").addFilter(_closing_heartbeat)
+
+
+#: What a worker logs, with a traceback, when a heartbeat is in flight as the connection to the
+#: scheduler closes (dask/distributed issues 7105 and 9032: a race inside ``Worker.close``).
+HEARTBEAT_RACE = "Failed to communicate with scheduler during heartbeat."
+
+
+def _closing_heartbeat(record: logging.LogRecord) -> bool:
+    """Drop the heartbeat-race record of :data:`HEARTBEAT_RACE` (a logging filter).
+
+    The local cluster's scheduler runs in the parent process, over loopback: its connection closes
+    only as the parent closes the cluster (the run ended, or Ctrl-C/SIGTERM).  Dask does not act on
+    the failed heartbeat (the worker goes on; its scheduler stream decides), so the record says
+    nothing a user can act on, and it printed a traceback under the parent's clean exit message.
+    """
+    return record.getMessage() != HEARTBEAT_RACE
 
 
 @contextlib.contextmanager
