@@ -437,3 +437,27 @@ def test_unslanted_staggered_triangles_converge_on_load_line_x():
     assert r.max_penetration < 1e-9
     assert not any(e.rescue == "other_plane_update" for e in r.extras["rescues"])
     assert r.Cf_star == pytest.approx(1.291, rel=2e-3)
+
+
+def test_a_slanted_design_reuses_the_condensation_of_its_footprints_and_gives_the_same_answer():
+    # A slant shears the scales but keeps their base footprints, so the mesh, the ties and the
+    # condensation are the unslanted design's (membrane.md sec. 5, "Reuse"): built after it, the
+    # slanted model takes the same Condensed object. Its answer must equal that of a model condensed
+    # afresh (the cache emptied) to the last bit: the same S and factor, the same arithmetic after.
+    # A different gap changes the footprints: condensed anew.
+    from qpscale.experiments import flexure
+
+    def setup(**design):
+        return FlexureSetup(design=Design(**design), membrane=GRADED, increments=1)
+
+    slanted = setup(slant_deg=60.0, slant_dir_deg=45.0)
+    flat = build_model(setup())
+    reused = build_model(slanted)
+    assert reused.cond is flat.cond and reused.patch is not flat.patch
+    flexure._LAST.clear()
+    fresh = build_model(slanted)
+    assert fresh.cond is not flat.cond
+    np.testing.assert_array_equal(fresh.cond.S_bordered, flat.cond.S_bordered)
+    a, b = run_model(reused), run_model(fresh)
+    assert a.Cf_star == b.Cf_star and np.array_equal(a.force, b.force)
+    assert build_model(setup(gap=0.02)).cond is not fresh.cond

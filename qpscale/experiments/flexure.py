@@ -10,6 +10,8 @@ condensed once (qpscale.membrane); every QP has only the retained DOFs and the p
 
 from __future__ import annotations
 
+import hashlib
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -333,6 +335,7 @@ def build_model(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> Flexur
     t0 = time.perf_counter()
     patch = None if setup.mode == "bare" else kept_scales(setup)
     mm = _mesh(setup, patch) if mesh is None else mesh
+    mesh_key = _digest(repr(mm.model), mm.mesh.p, mm.mesh.t)
     xyz = mm.nodes
     top, bottom = mm.face_nodes(True), mm.face_nodes(False)
     plate, supports = _strips(setup)
@@ -357,13 +360,56 @@ def build_model(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> Flexur
     held = gen_of[3 * sup_nodes + 2]
     if (held < 0).any() or (retained < 0).any():
         raise InvalidDesign("mesh", "a support or plate node is tied or pinned", "untied nodes")
-    cond = condense(mm.K, T, retained, held)
+    cond = _condensed(mesh_key, mm, T, retained, held)
     points = _plate_points(patch, plate) if patch is not None else []
     plate_idx = n_q + np.arange(len(plate_nodes))
     support_idx = n_q + len(plate_nodes) + np.arange(len(rows))
     return FlexureModel(
         setup, mm, patch, cond, n_q, support_idx, gap0, plate_idx, points, time.perf_counter() - t0
     )
+
+
+# The last condensation this process made, for the next model with the same inputs (a slanted
+# design has its unslanted footprints, hence the same mesh, ties and condensation: membrane.md
+# sec. 5, "Reuse").  One entry: a miss drops it before condensing, so the peak memory of a build
+# stays that of one condensation.
+_LAST: dict[str, tuple[str, Condensed]] = {}
+_LAST_LOCK = threading.Lock()
+
+
+def _digest(*parts: object) -> str:
+    """A hash of strings and arrays (dtype, shape and bytes): equal digests, equal inputs."""
+    h = hashlib.sha256()
+    for part in parts:
+        if isinstance(part, str):
+            h.update(part.encode())
+        else:
+            a = np.ascontiguousarray(part)
+            h.update(f"{a.dtype}{a.shape}".encode())
+            h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _condensed(
+    mesh_key: str, mm: MembraneMesh, T: sp.csr_matrix, retained: np.ndarray, held: np.ndarray
+) -> Condensed:
+    """``condense(mm.K, T, retained, held)``, or the last one made here if its inputs were the same.
+
+    The key is a hash of everything the condensation reads: the membrane model, the mesh's nodes
+    and elements (hence K), the map T (ties and pins) and the retained and held DOFs.  A
+    condensation is never modified after it is made (``Condensed`` is frozen and ``released``
+    returns a new one), so a model may share it.
+    """
+    T = sp.csr_matrix(T)
+    key = _digest(mesh_key, T.indptr, T.indices, T.data, np.asarray(retained), np.asarray(held))
+    with _LAST_LOCK:
+        last = _LAST.pop("cond", None)
+        if last is not None and last[0] == key:
+            _LAST["cond"] = last
+            return last[1]
+        cond = condense(mm.K, T, retained, held)
+        _LAST["cond"] = (key, cond)
+        return cond
 
 
 def roller_gap(setup: FlexureSetup, s: Array) -> Array:
