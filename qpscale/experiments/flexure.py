@@ -377,6 +377,13 @@ _LAST: dict[str, tuple[str, Condensed]] = {}
 _LAST_LOCK = threading.Lock()
 
 
+def forget_condensation() -> None:
+    """Drop the condensation this process keeps for reuse (its factor can hold a gigabyte on the
+    finest default meshes); the next model condenses afresh."""
+    with _LAST_LOCK:
+        _LAST.clear()
+
+
 def _digest(*parts: object) -> str:
     """A hash of strings and arrays (dtype, shape and bytes): equal digests, equal inputs."""
     h = hashlib.sha256()
