@@ -334,3 +334,31 @@ def test_findings_read_the_table():
     assert f["arrays raise puncture resistance 4 to 8 times"].startswith("F_c/F_c,iso = 4.50 to 6.00")
     assert f["contact with 4 % coupling: barely above the isolated scale"].endswith("no converged scene")
     assert f["failed scenes (status kept in the table)"] == "1"
+
+
+def test_flexure_scenes_that_share_a_condensation_run_as_one_task():
+    # The full study's tasks (paper._groups): each puncture scene alone; the flexure scenes of one
+    # design and load line that differ only in slant (and study) together, so that one process
+    # condenses once for them (membrane.md sec. 5, "Reuse"). Counted from the plan: square arrayed,
+    # per load line, has the two validation slants and the four variants (6); each of the 7 other
+    # designs 4 per load line; the bare membrane and the 5 isolated scales 1 each, per load line.
+    from qpscale.studies.paper import _groups
+
+    scenes = paper_scenes(False)
+    groups = _groups(scenes)
+    assert sorted(i for g in groups for i in g) == list(range(len(scenes)))
+    assert [g[0] for g in groups] == sorted(g[0] for g in groups)  # in the order of their first scene
+    flexure = [g for g in groups if scenes[g[0]].kind == "flexure"]
+    assert sorted(len(g) for g in flexure) == [1] * 12 + [4] * 14 + [6] * 2
+    assert all(len(g) == 1 for g in groups if scenes[g[0]].kind == "puncture")
+    for g in flexure:
+        first = scenes[g[0]]
+        for i in g[1:]:
+            s = scenes[i]
+            assert (s.shape, s.tiling, s.flex_mode, s.load_line, s.mesh_h) == (
+                first.shape,
+                first.tiling,
+                first.flex_mode,
+                first.load_line,
+                first.mesh_h,
+            )

@@ -505,20 +505,21 @@ def test_paper_killed_leaves_no_worker_and_no_complete_looking_table(tmp_path, s
 
 def test_paper_resumes_without_rerunning_saved_scenes(tmp_path, monkeypatch):
     import qpscale.studies.paper as paper
+    import qpscale.studies.paper_run as paper_run
     from qpscale.studies.paper_scenes import Scene
 
     scenes = [
         Scene("isolated", "puncture", "square", rings=0, increments=4),
         Scene("isolated", "puncture", "hexagon", rings=0, increments=4),
     ]
-    real = paper.run_scene
+    real = paper_run.run_scene
     ran = []
 
     def counting(scene, limit_s=None):
         ran.append(scene.key)
         return real(scene, limit_s)
 
-    monkeypatch.setattr(paper, "run_scene", counting)
+    monkeypatch.setattr(paper_run, "run_scene", counting)
     first = paper.run_paper(tmp_path, workers=1, scenes=scenes[:1])
     assert ran == [scenes[0].key]
     # A second run with one more scene computes only the new one; the saved row is reused as is.

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from .engine import Engine
-from .paper_run import SCENE_CLOCK, run_scene
+from .paper_run import SCENE_CLOCK, condensation_group, run_scene_group
 from .paper_scenes import Scene, paper_scenes
 
 MAX_WORKERS = 2
@@ -72,29 +72,50 @@ def run_scenes(
     SIGTERM turned into one by the command line) cancels the scenes not yet done and, for a local
     cluster, ends its worker processes: no worker keeps computing a scene nobody will read.  A
     scene whose task the cluster gave up (its workers killed, e.g. out of memory) is a row with
-    the exception's class as its status.
+    the exception's class as its status.  A task is one scene, or the flexure scenes that share a
+    condensation (:func:`_groups`), run one after another in one process.
     """
     rows: dict[str, dict] = {}
     data: dict[str, dict] = {}
+    groups = _groups(scenes)
 
-    def done(i: int, result: tuple[dict, dict]) -> None:
-        scene = scenes[i]
-        rows[scene.key], data[scene.key] = result
-        if on_done:
-            on_done(scene, *result)
-        if progress:
-            progress(scene, result[0])
+    def done(g: int, results: list[tuple[dict, dict]]) -> None:
+        for i, result in zip(groups[g], results):
+            scene = scenes[i]
+            rows[scene.key], data[scene.key] = result
+            if on_done:
+                on_done(scene, *result)
+            if progress:
+                progress(scene, result[0])
 
-    def lost(i: int, exc: BaseException) -> tuple[dict, dict]:
-        return {**scenes[i].as_dict(), "status": type(exc).__name__, "error": str(exc)}, {}
+    def lost(g: int, exc: BaseException) -> list[tuple[dict, dict]]:
+        status = {"status": type(exc).__name__, "error": str(exc)}
+        return [({**scenes[i].as_dict(), **status}, {}) for i in groups[g]]
 
     if engine is None:
-        # No cluster to start for one scene (or none left to run after a resume).
-        n = min(workers, MAX_WORKERS, os.cpu_count() or 1) if len(scenes) > 1 else 1
+        # No cluster to start for one task (or none left to run after a resume).
+        n = min(workers, MAX_WORKERS, os.cpu_count() or 1) if len(groups) > 1 else 1
         with Engine(n) as own:
             return run_scenes(scenes, workers, progress, limit_s, on_done, own)
-    engine.map(run_scene, [(s, limit_s) for s in scenes], on_done=done, failure=lost, name="scene")
+    tasks = [([scenes[i] for i in group], limit_s) for group in groups]
+    engine.map(run_scene_group, tasks, on_done=done, failure=lost, name="scene")
     return [rows[s.key] for s in scenes], data
+
+
+def _groups(scenes: list[Scene]) -> list[list[int]]:
+    """The tasks: each puncture scene alone; the flexure scenes that share a condensation
+    (``paper_run.condensation_group``) together, in the order of the first of them."""
+    groups: list[list[int]] = []
+    at: dict[Scene, int] = {}
+    for i, scene in enumerate(scenes):
+        key = condensation_group(scene)
+        if key is None or key not in at:
+            if key is not None:
+                at[key] = len(groups)
+            groups.append([i])
+        else:
+            groups[at[key]].append(i)
+    return groups
 
 
 def _lookup(table: pd.DataFrame, mask: pd.Series, column: str) -> float:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import time
 import traceback
+from dataclasses import replace
 
 import numpy as np
 
@@ -164,3 +165,21 @@ def run_scene(scene: Scene, limit_s: float | None = None) -> tuple[dict, dict]:
     row["wall_s"] = time.perf_counter() - t0
     row["cpu_s"] = time.thread_time() - c0
     return row, data
+
+
+def condensation_group(scene: Scene) -> Scene | None:
+    """What a flexure scene shares with its siblings: the scene without its slant (and study).
+
+    A slant keeps the base footprints, so the flexure scenes of one design and load line that
+    differ only in slant have one condensation (formulations/membrane.md sec. 5, "Reuse"); run one
+    after another in one process, all but the first reuse it.  None for a puncture scene (nothing
+    to share).  Only the order of work depends on this: whether a condensation is reused is
+    decided by comparing its inputs."""
+    if scene.kind != "flexure":
+        return None
+    return replace(scene, study="flexure", slant_deg=0.0, slant_dir_deg=0.0)
+
+
+def run_scene_group(scenes: list[Scene], limit_s: float | None = None) -> list[tuple[dict, dict]]:
+    """:func:`run_scene` on each of ``scenes`` in turn, in this process (each with its own limit)."""
+    return [run_scene(scene, limit_s) for scene in scenes]
