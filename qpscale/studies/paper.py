@@ -67,13 +67,14 @@ def run_scenes(
     """Run ``scenes`` on ``engine`` (None: a local one of ``workers`` processes, 1: this process),
     rows in the order given.
 
-    ``limit_s`` is each scene's wall-time limit (None: none).  ``on_done(scene, row, data)`` is
-    called as each scene finishes (:func:`run_paper` saves it there).  An exception here (Ctrl-C,
-    SIGTERM turned into one by the command line) cancels the scenes not yet done and, for a local
-    cluster, ends its worker processes: no worker keeps computing a scene nobody will read.  A
-    scene whose task the cluster gave up (its workers killed, e.g. out of memory) is a row with
-    the exception's class as its status.  A task is one scene, or the flexure scenes that share a
-    condensation (:func:`_groups`), run one after another in one process.
+    ``limit_s`` is each scene's time limit (None: none; CPU seconds, ``paper_run.SCENE_CLOCK``).
+    ``on_done(scene, row, data)`` is called as each scene finishes (:func:`run_paper` saves it
+    there).  An exception here (Ctrl-C, SIGTERM turned into one by the command line) cancels the
+    scenes not yet done and, for a local cluster, ends its worker processes: no worker keeps
+    computing a scene nobody will read.  A scene whose task the cluster gave up (its workers
+    killed, e.g. out of memory) is a row with the exception's class as its status.  A task is one
+    scene, or the flexure scenes that share a condensation (:func:`_groups`), run one after
+    another in one process.
     """
     rows: dict[str, dict] = {}
     data: dict[str, dict] = {}
