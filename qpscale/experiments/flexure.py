@@ -335,7 +335,6 @@ def build_model(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> Flexur
     t0 = time.perf_counter()
     patch = None if setup.mode == "bare" else kept_scales(setup)
     mm = _mesh(setup, patch) if mesh is None else mesh
-    mesh_key = _digest(repr(mm.model), mm.mesh.p, mm.mesh.t)
     xyz = mm.nodes
     top, bottom = mm.face_nodes(True), mm.face_nodes(False)
     plate, supports = _strips(setup)
@@ -360,7 +359,7 @@ def build_model(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> Flexur
     held = gen_of[3 * sup_nodes + 2]
     if (held < 0).any() or (retained < 0).any():
         raise InvalidDesign("mesh", "a support or plate node is tied or pinned", "untied nodes")
-    cond = _condensed(mesh_key, mm, T, retained, held)
+    cond = _condensed(mm, T, retained, held)
     points = _plate_points(patch, plate) if patch is not None else []
     plate_idx = n_q + np.arange(len(plate_nodes))
     support_idx = n_q + len(plate_nodes) + np.arange(len(rows))
@@ -397,9 +396,7 @@ def _digest(*parts: object) -> str:
     return h.hexdigest()
 
 
-def _condensed(
-    mesh_key: str, mm: MembraneMesh, T: sp.csr_matrix, retained: np.ndarray, held: np.ndarray
-) -> Condensed:
+def _condensed(mm: MembraneMesh, T: sp.csr_matrix, retained: np.ndarray, held: np.ndarray) -> Condensed:
     """``condense(mm.K, T, retained, held)``, or the last one made here if its inputs were the same.
 
     The key is a hash of everything the condensation reads: the membrane model, the mesh's nodes
@@ -408,12 +405,13 @@ def _condensed(
     returns a new one), so a model may share it.
     """
     T = sp.csr_matrix(T)
-    key = _digest(mesh_key, T.indptr, T.indices, T.data, np.asarray(retained), np.asarray(held))
+    mesh = (repr(mm.model), mm.mesh.p, mm.mesh.t)
+    key = _digest(*mesh, T.indptr, T.indices, T.data, np.asarray(retained), np.asarray(held))
     with _LAST_LOCK:
-        last = _LAST.pop("cond", None)
+        last = _LAST.get("cond")
         if last is not None and last[0] == key:
-            _LAST["cond"] = last
             return last[1]
+        _LAST.clear()  # before condensing: never two factors held at once
         cond = condense(mm.K, T, retained, held)
         _LAST["cond"] = (key, cond)
         return cond
