@@ -59,25 +59,35 @@ def piece_pairs(world: World, pairs: np.ndarray) -> tuple[np.ndarray, ...]:
     return a, np.tile(pa.ravel(), len(pairs)), b, np.tile(pb.ravel(), len(pairs))
 
 
+def _projections(axes: Array, verts: Array) -> Array:
+    """``axes (P, k, 3)`` dotted with ``verts (P, v, 3)``, vertex axis first: ``(v, P, k)``.
+
+    One batched product, then laid out so that the min and max over a piece's vertices reduce
+    over the leading axis: numpy reduces a short trailing axis (8 vertices) an order of magnitude
+    slower, and on a 5x5 dart array the einsum and those reductions were the contact detection's
+    largest cost (formulations/contact.md sec. 2 states what is computed; this is only how)."""
+    return np.ascontiguousarray((axes @ verts.transpose(0, 2, 1)).transpose(2, 0, 1))
+
+
 def separate(world: World, pairs: np.ndarray) -> SAT:
     """Separating-axis test over all piece pairs of the scale pairs ``(S, 2)``."""
     a, pa, b, pb = piece_pairs(world, pairs)
     VA, VB = world.verts[a, pa], world.verts[b, pb]
     NA, NB = world.normals[a, pa], world.normals[b, pb]
-    pAA, pAB = np.einsum("pfk,pvk->pfv", NA, VA), np.einsum("pfk,pvk->pfv", NA, VB)
-    face_a = pAB.min(axis=2) - pAA.max(axis=2)
-    pBA, pBB = np.einsum("pfk,pvk->pfv", NB, VA), np.einsum("pfk,pvk->pfv", NB, VB)
-    face_b = pBA.min(axis=2) - pBB.max(axis=2)
+    pAA, pAB = _projections(NA, VA), _projections(NA, VB)
+    face_a = pAB.min(axis=0) - pAA.max(axis=0)
+    pBA, pBB = _projections(NB, VA), _projections(NB, VB)
+    face_b = pBA.min(axis=0) - pBB.max(axis=0)
     U = np.cross(world.dirs[a, pa][:, :, None, :], world.dirs[b, pb][:, None, :, :])
     norm = np.linalg.norm(U, axis=-1)
     valid = norm > PARALLEL_SIN
     U = U / np.where(valid, norm, 1.0)[..., None]
-    uA, uB = np.einsum("pijk,pvk->pijv", U, VA), np.einsum("pijk,pvk->pijv", U, VB)
-    s_plus = uB.min(axis=3) - uA.max(axis=3)
-    s_minus = uA.min(axis=3) - uB.max(axis=3)
+    n, nc = len(a), U.shape[1]
+    flat = U.reshape(n, nc * nc, 3)
+    uA, uB = _projections(flat, VA), _projections(flat, VB)
+    s_plus = (uB.min(axis=0) - uA.max(axis=0)).reshape(n, nc, nc)
+    s_minus = (uA.min(axis=0) - uB.max(axis=0)).reshape(n, nc, nc)
     sign = np.where(s_plus >= s_minus, 1.0, -1.0)
     edge = np.where(valid, np.maximum(s_plus, s_minus), -np.inf)
-    best = np.maximum(
-        np.maximum(face_a.max(axis=1), face_b.max(axis=1)), edge.reshape(len(a), -1).max(axis=1)
-    )
+    best = np.maximum(np.maximum(face_a.max(axis=1), face_b.max(axis=1)), edge.reshape(n, -1).max(axis=1))
     return SAT(a, pa, b, pb, face_a, face_b, edge, U * sign[..., None], best)
