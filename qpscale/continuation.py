@@ -503,25 +503,19 @@ class Path:
         f_lo, f_hi = self.tilt_of(lo) - self.phi_c, self.tilt_of(hi) - self.phi_c
         a, b, side = lo, hi, 0
         for _ in range(60):
+            if _round_off(a, b):
+                # The last state landed on the other side at the depth of the bracket's end: two
+                # states of one depth on either side of phi_c.  Interpolating between them would
+                # divide by a zero width (a NaN start, which failed the 5x5 dart slanted 60 deg
+                # towards 45 deg as an invalid input); it is the round-off case below.
+                return self._tilt_at_round_off(a, b, (a, b), index)
             d = (a.delta * f_hi - b.delta * f_lo) / (f_hi - f_lo)
             eq = self.solve(_between(a, b, d), d, index).unwrap()
             f = self.tilt_of(eq) - self.phi_c
             if abs(f) <= TILT_TARGET * self.phi_c:
                 return eq
-            if abs(b.delta - a.delta) <= 1e-15 * max(1.0, b.delta):
-                # The bracket is at round-off of the depth: the SQP's accuracy (~1e-8) limits how
-                # close the tilt gets; within 1e-6 phi_c it is located (sec. 3).  A larger
-                # difference across it is a jump of the tilt, and no state lies at phi_c.
-                best = min((a, b, eq), key=lambda st: abs(self.tilt_of(st) - self.phi_c))
-                if abs(self.tilt_of(best) - self.phi_c) <= TILT_LOCATED * self.phi_c:
-                    return best
-                raise SolverFailure(
-                    self.settings.solver,
-                    "failure tilt not located",
-                    index,
-                    f"tilt jumps from {np.rad2deg(self.tilt_of(a)):.9g} to {np.rad2deg(self.tilt_of(b)):.9g}"
-                    f" deg at depth {a.delta:.10g} without a located snap",
-                )
+            if _round_off(a, b):
+                return self._tilt_at_round_off(a, b, (a, b, eq), index)
             if f < 0:
                 a, f_lo = eq, f
                 if side == -1:
@@ -533,6 +527,24 @@ class Path:
                     f_lo /= 2
                 side = 1
         raise SolverFailure(self.settings.solver, "failure tilt not located", index)
+
+    def _tilt_at_round_off(
+        self, a: Equilibrium, b: Equilibrium, states: tuple[Equilibrium, ...], index: int
+    ) -> Equilibrium:
+        """The failure search's bracket ``a, b`` is at round-off of the depth: the SQP's accuracy
+        (~1e-8) limits how close the tilt gets, and within 1e-6 phi_c it is located (sec. 3); the
+        state of ``states`` nearest phi_c.  A larger difference across the bracket is a jump of
+        the tilt, no state lies at phi_c, and the search fails with its status."""
+        best = min(states, key=lambda st: abs(self.tilt_of(st) - self.phi_c))
+        if abs(self.tilt_of(best) - self.phi_c) <= TILT_LOCATED * self.phi_c:
+            return best
+        raise SolverFailure(
+            self.settings.solver,
+            "failure tilt not located",
+            index,
+            f"tilt jumps from {np.rad2deg(self.tilt_of(a)):.9g} to {np.rad2deg(self.tilt_of(b)):.9g}"
+            f" deg at depth {a.delta:.10g} without a located snap",
+        )
 
     def released(self, a: Equilibrium, b: Equilibrium) -> float:
         """Energy released between two states: work of the load (trapezoidal) minus the stored
@@ -876,6 +888,11 @@ def predict(states: list[Equilibrium], delta: float, since: int = 0) -> Equilibr
         iterations=0,
         penetration=last.penetration,
     )
+
+
+def _round_off(a: Equilibrium, b: Equilibrium) -> bool:
+    """The two states' depths are equal to round-off (a bracket that cannot be split)."""
+    return abs(b.delta - a.delta) <= 1e-15 * max(1.0, b.delta)
 
 
 def _between(a: Equilibrium, b: Equilibrium, delta: float) -> Equilibrium:

@@ -125,3 +125,41 @@ def test_a_push_that_comes_back_within_the_energies_resolution_is_no_branch():
         assert (landing is not eq) is confirmed, drop
     # A held path's bifurcation takes its one chosen side whenever it lowers the energy at all.
     assert path_landing_at(1e-12).branch_off(eq, sv, sides=(1.0,), resolved=False) is not eq
+
+
+@pytest.mark.parametrize("lo_gap, width, located", [(1e-7, 1e-12, True), (1e-4, 1e-13, False)])
+def test_a_failure_search_whose_bracket_closes_to_one_depth_ends_without_a_nan_start(lo_gap, width, located):
+    # The failure search (puncture.md sec. 3) cuts its bracket where regula falsi puts the root;
+    # with the upper state far past phi_c the cut rounds to the lower state's own depth, and a
+    # level there that lands on the other side (another basin) leaves two states of one depth.
+    # Interpolating between them divided by a zero width: a NaN start (the 5x5 dart slanted
+    # 60 deg towards 45 deg failed so, as an invalid input).  Now the round-off rule decides:
+    # the lower state if it lies within TILT_LOCATED of phi_c, else the search fails by status.
+    from qpscale.continuation import TILT_LOCATED, Path, PathSettings, StateFunctions
+    from qpscale.errors import SolverFailure
+    from qpscale.level import LevelOutcome, LevelStatus
+
+    settings = PathSettings(phi_c_deg=13.0, increments=16, max_increments=400, solver="test")
+    phi_c = np.deg2rad(settings.phi_c_deg)
+    lo = _state(1.0, [[0.0, 0.0, 0.0, phi_c * (1.0 - lo_gap), 0.0]])
+    hi = _state(1.0 + width, [[0.0, 0.0, 0.0, 1.5 * phi_c, 0.0]])
+    starts = []
+
+    def level(start, delta, index, descent=False):
+        starts.append(start.q.copy())
+        return LevelOutcome(LevelStatus.CONVERGED, _state(delta, hi.q))
+
+    functions = StateFunctions(
+        energy=lambda s: 0.0,
+        force_norm=lambda s: 0.0,
+        tilt=lambda s: float(s.q[0, 3]),
+        stability=lambda s: None,
+    )
+    path = Path(level, functions, settings, lo)
+    if located:
+        assert lo_gap <= TILT_LOCATED
+        assert path.locate_failure(lo, hi, 7) is lo
+    else:
+        with pytest.raises(SolverFailure, match="failure tilt not located"):
+            path.locate_failure(lo, hi, 7)
+    assert starts and all(np.isfinite(q).all() for q in starts)
