@@ -387,6 +387,7 @@ def puncture(
     progress: Callable[[str], None] | None = None,
     rings_tol: float | None = None,
     max_increments: int = v.DEFAULT_MAX_INCREMENTS,
+    edges: str = "clamped",
 ) -> PunctureReport:
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c.
 
@@ -442,6 +443,12 @@ def puncture(
         Steps each load point's path may take before it gives up (``failure tilt not reached``),
         integers in [16, 100000] (default 400; the states that locate an event are not counted,
         formulations/puncture.md sec. 2).
+    edges : {"clamped", "local"}
+        Self stiffness of the scales on the patch's edge: ``clamped`` (the default: every scale
+        has the self block K0 of a scale whose neighbours are all present and clamped, so the
+        outer ring is a stiff frame; the paper's 5x5 comparison) or ``local`` (each scale's own
+        neighbourhood: the 5x5 matches a boundary-element solve of the whole patch to 0.02 %,
+        formulations/substrate.md sec. 9).
 
     Returns
     -------
@@ -474,6 +481,9 @@ def puncture(
     from .contact import FORMULATIONS
 
     rows = v.choice("formulation", formulation, FORMULATIONS)
+    from .substrate import EDGES
+
+    edge_model = v.choice("edges", edges, EDGES)
     if backend == "penalty" and accuracy is not None:
         raise v.conflict("solver", "accuracy", "the penalty baseline has no QP tolerance")
     tol = v.accuracy("high" if accuracy is None else accuracy)
@@ -518,6 +528,7 @@ def puncture(
         sqp=SQPSettings(solver=backend, accuracy=tol),
         contact=ContactSettings(formulation=rows),
         max_increments=budget,
+        edges=edge_model,
     )
     result = run_puncture(setup, progress=progress)
     payload: dict[str, Any] = {
@@ -538,6 +549,7 @@ def puncture(
         "tiling": design.tiling,
         "interaction": mode,
         "coupling_factor": setup.coupling_factor,
+        "edges": edge_model,
         "curve": {
             "w_star": result.w_star.tolist(),
             "F_star": result.F_star.tolist(),

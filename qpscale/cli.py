@@ -71,6 +71,7 @@ RANGES: dict[str, str] = {
     "--load-line": "{x, y}",
     "--mesh-h": "[0.05, 2] L, within the memory and time limits",
     "--formulation": "{plane, feature}",
+    "--edges": "{clamped, local}",
     "--roller-radius": "(0, 3.75) L (half the span less the plate's width)",
     "--top-h": "(0, 1.5 / layers] L (default: d / 2 with scales, uniform layers bare)",
     "--refinement": "integers in [2, 16]",
@@ -462,6 +463,15 @@ def puncture(
         "--max-increments",
         help=_help("--max-increments", "Steps a load point's path may take before it gives up."),
     ),
+    edges: str = typer.Option(
+        "clamped",
+        "--edges",
+        help=_help(
+            "--edges",
+            "Self stiffness of the patch's edge scales: clamped (K0, the paper's comparison) or "
+            "local (their own neighbourhood).",
+        ),
+    ),
     load_point: tuple[float, float] | None = typer.Option(
         None,
         "--load-point",
@@ -513,6 +523,7 @@ def puncture(
             progress=progress,
             rings_tol=rings_tol,
             max_increments=max_increments,
+            edges=edges,
         )
 
     def summary(p: dict[str, Any]) -> None:

@@ -54,6 +54,7 @@ FLAG_OF: dict[str, str] = {
     "h": "--mesh-h",
     "nz": "--mesh-h",
     "formulation": "--formulation",
+    "edges": "--edges",
     "refinement": "--refinement",
     "workers": "--workers",
     "scheduler": "--scheduler",

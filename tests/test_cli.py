@@ -98,3 +98,22 @@ def test_json_stdout_holds_the_json_alone_whatever_a_c_library_prints(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert json.loads(out.stdout) == {"x": list(range(40000))}
     assert "Running HiGHS banner" in out.stderr and "a python print" in out.stderr
+
+
+def test_puncture_edges_local_softens_the_frame_and_leaves_an_isolated_scale_alone():
+    # --edges local gives the scales on the patch's edge the self block of their own neighbourhood
+    # (formulations/substrate.md eq. (18)) instead of K0, as if their absent neighbours were there
+    # and clamped. The outer ring then stops acting as a stiff frame that the in-plane force chain
+    # leans on, so the corner-loaded 3x3's F_c* falls, from 1.2250 to 1.0177 (substrate.md
+    # secs. 9-10; the bound 0.9 leaves room for the increments). An isolated scale has no
+    # neighbourhood to change, so both settings must give the same number to the last digit.
+    def fc(*args: str) -> dict:
+        result = run("puncture", *args, "--json")
+        assert result.exit_code == 0, result.output
+        return json.loads(result.stdout)
+
+    clamped, local = fc("--rings", "1"), fc("--rings", "1", "--edges", "local")
+    assert (clamped["edges"], local["edges"]) == ("clamped", "local")
+    assert local["Fc_check"]["status"] == "verified"
+    assert local["Fc_star"] < 0.9 * clamped["Fc_star"]
+    assert fc("--isolated", "--edges", "local")["Fc_star"] == fc("--isolated")["Fc_star"]

@@ -38,7 +38,7 @@ NUMBERS = st.one_of(
 WORDS = st.sampled_from(
     ["square", "hexagon", "dart", "triangle", "trapezoid", "circle", "", "arrayed", "staggered",
      "chevron", "honeycomb", "x", "y", "z", "full", "contact", "substrate", "clarabel", "osqp",
-     "penalty", "high", "1e-7", "qpsolvers:nope", "plane", "feature"]
+     "penalty", "high", "1e-7", "qpsolvers:nope", "plane", "feature", "clamped", "local"]
 )  # fmt: skip
 
 NUMERIC_FLAGS = {
@@ -53,7 +53,7 @@ NUMERIC_FLAGS = {
 WORD_FLAGS = {
     "geometry": ["--shape", "--tiling"],
     "substrate": ["--shape", "--tiling"],
-    "puncture": ["--shape", "--tiling", "--interaction", "--solver", "--accuracy"],
+    "puncture": ["--shape", "--tiling", "--interaction", "--solver", "--accuracy", "--edges"],
     "flexure": ["--shape", "--tiling", "--load-line", "--solver", "--formulation"],
 }
 SWITCHES = {

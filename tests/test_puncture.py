@@ -431,3 +431,12 @@ def test_slanted_arrays_reach_phi_c_and_their_work_balances(design, point):
     assert result.tilt_deg[-1] == pytest.approx(13.0, rel=1e-6)
     work, balance = work_balance(setup, result)
     assert work == pytest.approx(balance, rel=2e-3)
+
+
+def test_local_edges_need_the_boundary_element_substrate():
+    # The local self blocks are boundary-element solves of each edge neighbourhood (substrate.md
+    # eq. (18)): with the spring fidelity there is nothing to solve, so the setup refuses it by name.
+    with pytest.raises(InvalidDesign, match="edges"):
+        PunctureSetup(edges="local", fidelity="springs")
+    with pytest.raises(InvalidDesign, match="edges"):
+        PunctureSetup(edges="free")

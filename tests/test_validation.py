@@ -76,6 +76,7 @@ def command_flags(command: str) -> set[str]:
         ("puncture", ["--accuracy", "tight"], "--accuracy"),
         ("puncture", ["--accuracy", "0.5"], "--accuracy"),
         ("puncture", ["--solver", "gurobi"], "--solver"),
+        ("puncture", ["--edges", "free"], "--edges"),
         ("puncture", ["--load-point", "5", "5"], "--load-point"),  # off the scale: was a plausible F_c
         ("puncture", ["--load-point", "nan", "0"], "--load-point"),
         ("flexure", ["--solver", "penalty"], "--solver"),

@@ -38,7 +38,7 @@ from ..events import Event
 from ..geometry import tilt
 from ..increment import Equilibrium, LoadPoint, SQPSettings
 from ..penalty import PenaltySettings
-from ..substrate import SubstrateModel, stiffness_matrix
+from ..substrate import EDGES, SubstrateModel, stiffness_matrix
 from ..threads import limited_blas
 from ..tiling import Design, Patch
 from ..validation import DEFAULT_MAX_INCREMENTS
@@ -75,6 +75,10 @@ class PunctureSetup:
         evaluates the worst top-face vertex.
     increments : int
         Target number of increments up to failure (the adaptive step starts from it), >= 2.
+    edges : str
+        Self stiffness of the scales on the patch's edge: ``clamped`` (K0 on every scale, as if
+        the absent neighbours were present and clamped: the paper's 5x5 comparison) or ``local``
+        (each scale's own neighbourhood, formulations/substrate.md eq. (18); ``bem`` fidelity only).
     penalty : PenaltySettings or None
         Settings of the penalty baseline, used when ``sqp.solver == "penalty"``.
     """
@@ -86,6 +90,7 @@ class PunctureSetup:
     phi_c_deg: float = 13.0
     load_point: tuple[float, float] | None = None
     fidelity: str = "bem"
+    edges: str = "clamped"
     sqp: SQPSettings = field(default_factory=SQPSettings)
     contact: ContactSettings = field(default_factory=ContactSettings)
     increments: int = 16
@@ -102,6 +107,10 @@ class PunctureSetup:
             raise InvalidDesign("phi_c_deg", self.phi_c_deg, "(0, 60]")
         if not 0.0 <= self.nu <= 0.5:
             raise InvalidDesign("nu", self.nu, "[0, 0.5]")
+        if self.edges not in EDGES:
+            raise InvalidDesign("edges", self.edges, "{" + ", ".join(EDGES) + "}")
+        if self.edges == "local" and self.fidelity != "bem":
+            raise InvalidDesign("edges", self.edges, "{clamped} with fidelity springs (local needs bem)")
         if self.penalty is not None and not isinstance(self.penalty, PenaltySettings):
             raise InvalidDesign("penalty", type(self.penalty).__name__, "PenaltySettings or None")
         if not 2 <= self.increments <= self.max_increments:
@@ -201,7 +210,9 @@ class PunctureResult:
 def build_model(setup: PunctureSetup) -> tuple[Patch, sp.csc_matrix]:
     """The patch and its substrate stiffness K(f) (sparse, 5n x 5n, E* = L = 1)."""
     patch = setup.design.patch()
-    model = SubstrateModel(nu=setup.nu, fidelity=setup.fidelity, coupling=setup.coupling_factor)
+    model = SubstrateModel(
+        nu=setup.nu, fidelity=setup.fidelity, coupling=setup.coupling_factor, edges=setup.edges
+    )
     return patch, stiffness_matrix(patch, model)
 
 

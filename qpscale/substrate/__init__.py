@@ -3,6 +3,7 @@
 from .bem import PunchBlocks, isolated_block, punch_blocks, shape_pieces
 from .calibration import Calibration, Coupling
 from .stiffness import (
+    EDGES,
     FIDELITIES,
     SubstrateModel,
     assemble,
@@ -15,6 +16,7 @@ from .stiffness import (
 )
 
 __all__ = [
+    "EDGES",
     "FIDELITIES",
     "Calibration",
     "Coupling",
