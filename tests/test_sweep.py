@@ -232,3 +232,24 @@ def test_an_output_that_is_not_a_sweep_table_is_refused(tmp_path):
         with pytest.raises(InvalidDesign, match=detail) as info:
             ResultTable(path)
         assert info.value.parameter == "out"
+
+
+def test_an_edges_axis_and_a_table_written_before_it_existed(tmp_path):
+    # A table written before the sweep knew `edges` has no such column and keys that do not name
+    # it. Such a table must resume: the design that ran then (K0 everywhere, "clamped") has the same
+    # key now and is skipped, while `edges = "local"` is a new design. An isolated scale has no
+    # edge neighbourhood, so both give the same F_c* exactly (test_cli has the 3x3 that differs).
+    out = tmp_path / "r.parquet"
+    with Engine(1) as engine:
+        run_sweep(parse_spec({"parameters": {"rings": 0}}), out, engine)
+    old = pd.read_parquet(out).drop(columns="edges")
+    assert "edges" not in old.iloc[0]["key"]
+    old.to_parquet(out, index=False)
+    spec = parse_spec({"parameters": {"rings": 0, "edges": ["clamped", "local"]}})
+    with Engine(1) as engine:
+        result = run_sweep(spec, out, engine)
+    assert (result.n_run, result.n_skipped) == (1, 1)
+    table = pd.read_parquet(out).set_index("key")
+    local = table.loc[[k for k in table.index if "edges=local" in k][0]]
+    clamped = table.loc[old.iloc[0]["key"]]
+    assert local["edges"] == "local" and local["Fc_star"] == clamped["Fc_star"]

@@ -115,6 +115,7 @@ def parameter_checks(experiment: str) -> dict[str, Check]:
     """Every parameter a sweep of ``experiment`` may set, with its range check, in key order."""
     from ..contact import FORMULATIONS
     from ..experiments.puncture import INTERACTIONS
+    from ..substrate import EDGES
 
     checks = _design_checks()
     if experiment == "puncture":
@@ -129,6 +130,7 @@ def parameter_checks(experiment: str) -> dict[str, Check]:
                 "phi_c_deg": _real(0.0, 60.0, "deg", lo_open=True),
                 "nu": _real(0.0, 0.5),
                 "probe": _bool,
+                "edges": _choice(*EDGES),
             }
         )
     else:
@@ -162,6 +164,7 @@ def defaults(experiment: str) -> dict[str, Any]:
             phi_c_deg=13.0,
             nu=0.5,
             probe=True,
+            edges="clamped",
         )
     else:
         out.update(
@@ -358,11 +361,22 @@ def normalise(experiment: str, given: Mapping[str, Any]) -> DesignPoint:
     return DesignPoint(design_key(experiment, ordered), experiment, ordered, invalid)
 
 
+#: Parameters added after sweep tables existed, with the value every earlier row ran with: a key
+#: names them only when they differ from it, so a table written before still resumes (its rows'
+#: keys are those of the same designs now).
+KEY_SINCE: dict[str, Any] = {"edges": "clamped"}
+
+
 def design_key(experiment: str, params: Mapping[str, Any]) -> str:
-    """A design's name in the results table: the experiment and every parameter, in order.
+    """A design's name in the results table: the experiment and every parameter, in order
+    (one of ``KEY_SINCE`` only when it is not the value the earlier rows ran with).
 
     >>> design_key("puncture", {"shape": "square", "gap": 0.005, "rings": 1, "probe": True})
     'puncture shape=square gap=0.005 rings=1 probe=true'
+    >>> design_key("puncture", {"shape": "square", "edges": "clamped"})
+    'puncture shape=square'
+    >>> design_key("puncture", {"shape": "square", "edges": "local"})
+    'puncture shape=square edges=local'
     """
 
     def text(x: Any) -> str:
@@ -372,4 +386,5 @@ def design_key(experiment: str, params: Mapping[str, Any]) -> str:
             return f"{x:.{GRID_DIGITS}g}"
         return "none" if x is None else str(x)
 
-    return " ".join([experiment, *(f"{k}={text(x)}" for k, x in params.items())])
+    named = [(k, x) for k, x in params.items() if k not in KEY_SINCE or x != KEY_SINCE[k]]
+    return " ".join([experiment, *(f"{k}={text(x)}" for k, x in named)])
