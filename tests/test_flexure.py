@@ -373,14 +373,17 @@ def test_damped_level_weights_the_pressed_planes():
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "tiling,slant_dir,expected,damped",
-    [("arrayed", 0.0, 0.4917, None), ("staggered", 45.0, 1.0823, True), ("staggered", 90.0, 1.1741, False)],
+    [("arrayed", 0.0, 0.4917, None), ("staggered", 45.0, 1.0823, None), ("staggered", 90.0, 1.1741, False)],
 )
 def test_slanted_triangle_arrays_converge_on_load_line_y(tiling, slant_dir, expected, damped):
     # The three curves that failed on rollers (membrane.md sec. 8; 1-2 minutes each): a plane hinged on
     # a line of contact cycles or wanders undamped. Measured C_f* 0.4917 (arrayed, converges undamped on
-    # the gap-resolved mesh), 1.0823 (staggered 45: damped retry at the first plate position) and 1.1741
-    # (staggered 90: undamped since stale planes restart, 1.195 with the damped retry before; the hinged
-    # planes' positions are not unique, so the value is that of this plane update, to 2e-3).
+    # the gap-resolved mesh), 1.0823 (staggered 45: it needed the damped retry at the first plate
+    # position until the membrane's factor was ordered by nested dissection, and converges without it
+    # since, to the same C_f* within 2e-7: whether that position needs it is round-off, so it is not
+    # asserted) and 1.1741 (staggered 90: undamped since stale planes restart, 1.195 with the damped
+    # retry before; the hinged planes' positions are not unique, so the value is that of this plane
+    # update, to 2e-3).
     design = Design(shape="triangle", tiling=tiling, slant_deg=60.0, slant_dir_deg=slant_dir)
     r = run_flexure(FlexureSetup(design=design, load_line="y"))
     assert r.max_penetration < 1e-9
