@@ -479,10 +479,9 @@ def puncture(
         )
     backend = v.solver(solver)
     from .contact import FORMULATIONS
-
-    rows = v.choice("formulation", formulation, FORMULATIONS)
     from .substrate import EDGES
 
+    rows = v.choice("formulation", formulation, FORMULATIONS)
     edge_model = v.choice("edges", edges, EDGES)
     if backend == "penalty" and accuracy is not None:
         raise v.conflict("solver", "accuracy", "the penalty baseline has no QP tolerance")

@@ -253,7 +253,7 @@ def _assemble_boxes(model: MembraneModel, mesh: MeshHex, size: Array, s: Array) 
     w = 0.5 * vol[:, None, None] / (size[:, :, None] * size[:, None, :])  # (n_e, 3, 3)
     Ke = w.reshape(-1, 9) @ C.reshape(9, -1)  # (n_e, 24 * 24), row-major per element
     # Triplets with 32-bit indices, converted by COO -> CSR (duplicates summed in the same order):
-    # the same matrix as the 64-bit broadcast triplets, 7x faster on the default companion mesh.
+    # the same matrix as from 64-bit broadcast triplets, 2-7x faster on the default scene's meshes.
     n = 3 * mesh.p.shape[1]
     index = np.int32 if n < 2**31 else np.int64
     dofs = (3 * mesh.t.T[:, :, None] + np.arange(3)).reshape(-1, 24).astype(index)
@@ -462,8 +462,8 @@ def _fill_reducing_order(
     order is METIS's nested dissection of the node graph with each node's DOFs kept together:
     exact zeros in box elements (e.g. some u_x-u_y couplings) break the 3x3 blocks of the DOF
     graph, and an order of that broken pattern fills 1.5-4 times more; nested dissection fills
-    14-40 % less than minimum degree on these meshes.  Otherwise AMD on the pattern of ``K_cc``
-    itself.  CHOLMOD keeps the order given only if it fills less than its own AMD.
+    18-40 % less than minimum degree on the study's meshes.  Otherwise AMD on the pattern of
+    ``K_cc`` itself.  CHOLMOD keeps the order given only if it fills less than its own AMD.
     """
     Tc = sp.csc_matrix(T[:, condensed])
     if not np.all(np.diff(Tc.indptr) == 1):
