@@ -504,18 +504,16 @@ class Path:
         a, b, side = lo, hi, 0
         for _ in range(60):
             if _round_off(a, b):
-                # The last state landed on the other side at the depth of the bracket's end: two
-                # states of one depth on either side of phi_c.  Interpolating between them would
-                # divide by a zero width (a NaN start, which failed the 5x5 dart slanted 60 deg
-                # towards 45 deg as an invalid input); it is the round-off case below.
-                return self._tilt_at_round_off(a, b, (a, b), index)
+                # The bracket has closed onto one depth (a cut landed at the depth of its other
+                # end): two states of one depth on either side of phi_c.  Interpolating between
+                # them would divide by a zero width (a NaN start, which failed the 5x5 dart slanted
+                # 60 deg towards 45 deg as an invalid input).
+                return self._tilt_at_round_off(a, b, index)
             d = (a.delta * f_hi - b.delta * f_lo) / (f_hi - f_lo)
             eq = self.solve(_between(a, b, d), d, index).unwrap()
             f = self.tilt_of(eq) - self.phi_c
             if abs(f) <= TILT_TARGET * self.phi_c:
                 return eq
-            if _round_off(a, b):
-                return self._tilt_at_round_off(a, b, (a, b, eq), index)
             if f < 0:
                 a, f_lo = eq, f
                 if side == -1:
@@ -528,14 +526,12 @@ class Path:
                 side = 1
         raise SolverFailure(self.settings.solver, "failure tilt not located", index)
 
-    def _tilt_at_round_off(
-        self, a: Equilibrium, b: Equilibrium, states: tuple[Equilibrium, ...], index: int
-    ) -> Equilibrium:
+    def _tilt_at_round_off(self, a: Equilibrium, b: Equilibrium, index: int) -> Equilibrium:
         """The failure search's bracket ``a, b`` is at round-off of the depth: the SQP's accuracy
         (~1e-8) limits how close the tilt gets, and within 1e-6 phi_c it is located (sec. 3); the
-        state of ``states`` nearest phi_c.  A larger difference across the bracket is a jump of
-        the tilt, no state lies at phi_c, and the search fails with its status."""
-        best = min(states, key=lambda st: abs(self.tilt_of(st) - self.phi_c))
+        end nearer phi_c.  A larger difference across the bracket is a jump of the tilt, no state
+        lies at phi_c, and the search fails with its status."""
+        best = min((a, b), key=lambda st: abs(self.tilt_of(st) - self.phi_c))
         if abs(self.tilt_of(best) - self.phi_c) <= TILT_LOCATED * self.phi_c:
             return best
         raise SolverFailure(
