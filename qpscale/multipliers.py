@@ -65,9 +65,10 @@ NOISE = 100.0
 # ray of the set); the cutting planes stop at MAX_CUTS or when their bounds are GAP apart.
 BOX = 10.0
 SUPPORT_LP_SETTINGS = {"tol_gap_abs": 1e-8, "tol_gap_rel": 1e-8, "tol_feas": 1e-8}
-# A support LP's member may leave the set by SUPPORT (force-scale units), the force below which a
+# A support LP's answer may leave the set by SUPPORT (force-scale units), the force below which a
 # row is not in the support: at the settings above the interior point answers' rows at zero sit
-# within 6e-9 of it (5x5 dart; at 1e-9 Clarabel ends AlmostSolved 2.8e-8 outside).
+# within 6e-9 of it (5x5 dart; at 1e-9 Clarabel ends AlmostSolved 2.8e-8 outside).  An answer
+# farther out is brought back along the segment from the members' mean (``_into_set``).
 SUPPORT_FEASIBLE = SUPPORT
 MAX_CUTS = 200
 GAP = 1e-10
@@ -99,8 +100,8 @@ class MultiplierSet:
 
 def _support_lp(w0: np.ndarray, ker: np.ndarray, k: int, rows: np.ndarray, cap: float, bound: float):
     """``max sum_{i in rows} min(lam_i, cap)`` over ``lam = (w0 + ker u)[:k] >= 0``, ``lam <= bound``:
-    unknowns (u, t); returns the member ``w0 + ker u``, or None when the LP is not solved or its
-    answer leaves the set by more than ``SUPPORT_FEASIBLE`` (force-scale units).
+    unknowns (u, t); returns its answer ``w0 + ker u`` (brought into the set by :func:`_into_set`),
+    or None when the LP is not solved.
 
     Solved in units of the force scale (``bound / BOX``) by Clarabel's interior point method.
     The set is a degenerate polytope: ``w0`` is a vertex with dozens of rows at zero, and the
@@ -134,11 +135,29 @@ def _support_lp(w0: np.ndarray, ker: np.ndarray, k: int, rows: np.ndarray, cap: 
     sol = clarabel.DefaultSolver(sp.csc_matrix((nu + m, nu + m)), c, A, b, cones, settings).solve()
     if str(sol.status) not in ("Solved", "AlmostSolved"):
         return None
-    w = w0 + unit * (ker @ np.asarray(sol.x)[:nu])
-    lam = w[:k] / unit
-    if lam.min(initial=0.0) < -SUPPORT_FEASIBLE or lam.max(initial=0.0) > BOX + SUPPORT_FEASIBLE:
-        return None
-    return w
+    return w0 + unit * (ker @ np.asarray(sol.x)[:nu])
+
+
+def _into_set(w: np.ndarray, anchor: np.ndarray, k: int, bound: float) -> np.ndarray:
+    """The point of the segment from ``anchor`` (a member) towards ``w`` (a support LP's answer,
+    which balances like every member but may leave ``0 <= lam <= bound``) farthest along it that
+    stays in the set to ``SUPPORT_FEASIBLE`` (force-scale units): ``w`` itself when it is in.
+
+    The set is convex, so every such point is a member.  An interior point's answer on a
+    degenerate LP can end just outside an optimal face that a row's bound cuts (the 5x5 dart
+    slanted towards 90 deg: AlmostSolved with a row at -1.9e-6 where the anchor gives it
+    1.8e-3); the step back to the set keeps 99.9 % of the rows' new forces there
+    (formulations/stability.md sec. 7)."""
+    slack = SUPPORT_FEASIBLE * bound / BOX
+    d = w[:k] - anchor[:k]
+    theta = 1.0
+    low = w[:k] < -slack  # rows the answer takes below zero: anchor + theta d >= -slack
+    if low.any():
+        theta = min(theta, float(np.min((anchor[:k][low] + slack) / -d[low])))
+    high = w[:k] > bound + slack
+    if high.any():
+        theta = min(theta, float(np.min((bound + slack - anchor[:k][high]) / d[high])))
+    return w if theta == 1.0 else anchor + max(theta, 0.0) * (w - anchor)
 
 
 def multiplier_set(qp: IncrementQP, force_scale: float) -> MultiplierSet:
@@ -180,11 +199,16 @@ def multiplier_set(qp: IncrementQP, force_scale: float) -> MultiplierSet:
     found = w0[:k] > tol
     while ker.shape[1] and not found.all():
         rest = np.flatnonzero(~found)
-        w = _support_lp(w0, ker, k, rest, cap, bound)
-        if w is None:
+        answer = _support_lp(w0, ker, k, rest, cap, bound)
+        if answer is None:
             raise SolverFailure("stability", "multiplier set LP failed", detail="uniform second variation")
+        w = _into_set(answer, np.mean(members, axis=0), k, bound)
         new = rest[w[rest] > tol]
         if not len(new):
+            if (answer[rest] > tol).any():  # the LP loads rows that no member reached: no support
+                raise SolverFailure(
+                    "stability", "multiplier set LP left the set", detail="uniform second variation"
+                )
             break
         members.append(w)
         found[new] = True

@@ -10,7 +10,7 @@ import clarabel
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from scipy.optimize import nnls
+from scipy.optimize import linprog, nnls
 
 from qpscale import multipliers
 from qpscale.certify import solve_exact
@@ -20,7 +20,7 @@ from qpscale.errors import SolverFailure
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, puncture_path, run_puncture
 from qpscale.experiments.symmetry import mirror_through
 from qpscale.increment import SQPSettings
-from qpscale.multipliers import BOX, NEAR_LADDER, SUPPORT, multiplier_set, uniform_second_variation
+from qpscale.multipliers import BOX, NEAR_LADDER, NOISE, SUPPORT, multiplier_set, uniform_second_variation
 from qpscale.stability import _null_space, second_variation
 from qpscale.tiling import Design
 
@@ -110,48 +110,105 @@ def test_daqp_solves_the_default_scene_and_agrees():
     assert other.Fc_star == pytest.approx(ref.Fc_star, rel=1e-6)
 
 
+def _captured(name: str):
+    """A captured state's QP (G, h, the loading row a, q) and its force scale."""
+    data = np.load(Path(__file__).parent / "data" / name)
+    G = sp.csc_matrix((data["G_data"], data["G_indices"], data["G_indptr"]), shape=tuple(data["G_shape"]))
+    a, q, h = data["a"], data["q"], data["h"]
+    return SimpleNamespace(q=q, rows=lambda: (G, h, sp.csr_matrix(a), None)), float(data["force_scale"])
+
+
+def _reach(qp, scale: float):
+    """Second method for the support: each row's own largest force over the set (in units of the
+    force scale), by an LP of its own, ``(w0 + ker u)_j`` over ``0 <= w0 + ker u <= the box``,
+    not the support iteration; the set by its definition (stability.md sec. 7: the state
+    balances within BALANCED at 1e-7 L).  Returns the rows within reach and their reach."""
+    G, h, A, _ = qp.rows()
+    a = A.toarray().ravel()
+    near = np.flatnonzero(h <= NEAR_LADDER[0])
+    B = np.hstack([G[near].T.toarray(), a[:, None]])
+    x, _ = nnls(np.hstack([B, -a[:, None]]), -qp.q, maxiter=50 * (len(near) + 2))
+    k = len(near)
+    w0 = np.r_[x[:k], x[k] - x[k + 1]]
+    ker = _null_space(B)
+    # In units of the force scale.  Neither solver solves every one of these LPs: on the unslanted
+    # dart HiGHS (simplex or interior point, with or without presolve) stops with an unknown
+    # status on 83-142 of the 240 and Clarabel solves all; on the slanted one Clarabel ends
+    # AlmostSolved or NumericalError on 50 of the 126 and HiGHS's interior point solves all.
+    # Each row's value is the first solver's that reports it solved.
+    reach = np.empty(k)
+    nu = ker.shape[1]
+    A_ub = np.vstack([-ker[:k], ker[:k]])
+    b = np.r_[w0[:k], BOX * scale - w0[:k]] / scale
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    tight = {"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10}
+    P, A_sp, cones = sp.csc_matrix((nu, nu)), sp.csc_matrix(A_ub), [clarabel.NonnegativeConeT(2 * k)]
+    for j in range(k):
+        sol = clarabel.DefaultSolver(P, -ker[j], A_sp, b, cones, settings).solve()
+        if str(sol.status) == "Solved":
+            u = np.asarray(sol.x)
+        else:
+            res = linprog(-ker[j], A_ub=A_ub, b_ub=b, bounds=(None, None), method="highs-ipm", options=tight)
+            assert res.status == 0, f"row {j}: Clarabel {sol.status}, HiGHS {res.message}"
+            u = res.x
+        reach[j] = w0[j] / scale + ker[j] @ u
+    return near, reach
+
+
 def test_the_support_of_a_degenerate_dart_state_is_every_row_some_member_loads():
     # A state of the unslanted 5x5 dart (captured, tests/data/dart_support_qp.npz): 240 rows
     # within 1e-7 L of contact, a 42-dimensional set of balancing forces, the NNLS member a vertex
     # with 51 rows at zero, and rows whose largest force over the set spans 1e-11..1e-1 of the
     # force scale.  HiGHS's simplex stopped on its support LP with an unknown status (the paper
-    # lost the scene to it).  Second method: each row's largest force over the set, by an LP of
-    # its own ((w0 + ker u)_j over w0 + ker u >= 0, <= the box), not the support iteration.  A
-    # row that can reach ten times the support threshold must be in the support, and a row in it
-    # must reach half the threshold (the support LPs' members leave the set by at most
-    # SUPPORT_FEASIBLE = the threshold).  Measured: the 218 rows found reach >= 9.5e-8, the 22
-    # others <= 1.0e-9.
-    data = np.load(Path(__file__).parent / "data" / "dart_support_qp.npz")
-    G = sp.csc_matrix((data["G_data"], data["G_indices"], data["G_indptr"]), shape=tuple(data["G_shape"]))
-    a, q, h = data["a"], data["q"], data["h"]
-    qp = SimpleNamespace(q=q, rows=lambda: (G, h, sp.csr_matrix(a), None))
-    scale = float(data["force_scale"])
+    # lost the scene to it).  A row that can reach ten times the support threshold must be in the
+    # support, and a row in it must reach half the threshold (the support LPs' members leave the
+    # set by at most SUPPORT_FEASIBLE = the threshold).  Measured: the 218 rows found reach
+    # >= 9.5e-8, the 22 others <= 1.0e-9.
+    qp, scale = _captured("dart_support_qp.npz")
     ms = multiplier_set(qp, scale)
-    # the set by its definition (stability.md sec. 7): the state balances within BALANCED at 1e-7 L
-    near = np.flatnonzero(h <= NEAR_LADDER[0])
-    B = np.hstack([G[near].T.toarray(), a[:, None]])
-    x, _ = nnls(np.hstack([B, -a[:, None]]), -q, maxiter=50 * (len(near) + 2))
-    k = len(near)
-    w0 = np.r_[x[:k], x[k] - x[k + 1]]
-    ker = _null_space(B)
-    # HiGHS (simplex or interior point, with or without presolve) stops with an unknown status
-    # on some of these LPs too; Clarabel solves each (in units of the force scale)
-    reach = np.empty(k)
-    nu = ker.shape[1]
-    A = sp.csc_matrix(np.vstack([-ker[:k], ker[:k]]))
-    b = np.r_[w0[:k], BOX * scale - w0[:k]] / scale
-    settings = clarabel.DefaultSettings()
-    settings.verbose = False
-    for j in range(k):
-        sol = clarabel.DefaultSolver(
-            sp.csc_matrix((nu, nu)), -ker[j], A, b, [clarabel.NonnegativeConeT(2 * k)], settings
-        ).solve()
-        assert str(sol.status) == "Solved"
-        reach[j] = w0[j] / scale + ker[j] @ np.asarray(sol.x)
+    near, reach = _reach(qp, scale)
     in_support = np.isin(near, ms.rows)
     assert in_support.sum() > 200
     assert in_support[reach > 10 * SUPPORT].all()
     assert (reach[in_support] > 0.5 * SUPPORT).all()
+
+
+def test_a_support_lp_answer_outside_the_set_is_brought_back_into_it():
+    # A state of the 5x5 dart slanted 60 deg towards 90 deg (captured,
+    # tests/data/slanted_dart_support_qp.npz): 126 rows within reach, a 36-dimensional set.  The
+    # second support LP (8 rows left) ends AlmostSolved with one row at -1.9e-6 of the force
+    # scale, where the members found so far give it 1.8e-3; the scene was lost to "multiplier set
+    # LP failed".  The answer is brought back along the segment from the members' mean
+    # (stability.md sec. 7; theta = 0.998 here), so the set is read: the base member is in it,
+    # and the support agrees with each row's own reach, the threshold being here the noise floor
+    # (100 times the state's imbalance: 2.5e-6 of the force scale) rather than SUPPORT.  Measured:
+    # the 118 rows found reach >= 1.56 thresholds, the 8 others <= 1.56 (the LP's answer gave
+    # them at most 0.8: noise, not support, so the LP found nothing new).
+    qp, scale = _captured("slanted_dart_support_qp.npz")
+    ms = multiplier_set(qp, scale)
+    assert ms.lam.min() > 0.0  # the mean of members: positive on every supported row
+    threshold = max(SUPPORT * scale, NOISE * ms.residual) / scale
+    near, reach = _reach(qp, scale)
+    in_support = np.isin(near, ms.rows)
+    assert in_support.sum() > 100
+    assert in_support[reach > 10 * threshold].all()
+    assert (reach[in_support] > 0.5 * threshold).all()
+
+
+def test_into_set_returns_an_answer_inside_the_set_unchanged_and_pulls_one_outside_back():
+    # _into_set on a hand-made case: anchor (1, 2, 0.5) inside 0 <= lam <= bound = 3 (BOX = 10, so
+    # the slack is SUPPORT_FEASIBLE * 0.3); an answer inside comes back as the same array, one
+    # with lam_0 = -1 comes back at theta = 1/2 (lam_0 = 0 up to the slack), one with lam_1 = 4
+    # at theta = 1/2 (lam_1 = bound).  The last entry (the load multiplier) is free.
+    anchor = np.array([1.0, 2.0, 0.5, 7.0])
+    inside = np.array([0.5, 2.5, 0.1, -3.0])
+    assert multipliers._into_set(inside, anchor, 3, 3.0) is inside
+    below = multipliers._into_set(np.array([-1.0, 2.0, 0.5, 9.0]), anchor, 3, 3.0)
+    slack = multipliers.SUPPORT_FEASIBLE * 0.3
+    assert below == pytest.approx([0.0, 2.0, 0.5, 8.0], abs=2 * slack)
+    above = multipliers._into_set(np.array([1.0, 4.0, 0.5, 7.0]), anchor, 3, 3.0)
+    assert above == pytest.approx([1.0, 3.0, 0.5, 7.0], abs=2 * slack)
 
 
 def _tent(u: np.ndarray) -> tuple[float, np.ndarray]:
