@@ -146,7 +146,7 @@ def _into_set(w: np.ndarray, anchor: np.ndarray, k: int, bound: float) -> np.nda
     The set is convex, so every such point is a member.  An interior point's answer on a
     degenerate LP can end just outside an optimal face that a row's bound cuts (the 5x5 dart
     slanted towards 90 deg: AlmostSolved with a row at -1.9e-6 where the anchor gives it
-    1.8e-3); the step back to the set keeps 99.9 % of the rows' new forces there
+    1.8e-3); the step back to the set keeps 99.8 % of the answer's move from the anchor there
     (formulations/stability.md sec. 7)."""
     slack = SUPPORT_FEASIBLE * bound / BOX
     d = w[:k] - anchor[:k]
