@@ -134,7 +134,7 @@ def _reach(qp, scale: float):
     # In units of the force scale.  Neither solver solves every one of these LPs: on the unslanted
     # dart HiGHS (simplex or interior point, with or without presolve) stops with an unknown
     # status on 83-142 of the 240 and Clarabel solves all; on the slanted one Clarabel ends
-    # AlmostSolved or NumericalError on 50 of the 126 and HiGHS's interior point solves all.
+    # short of Solved on 46 of the 126 and HiGHS's interior point solves all.
     # Each row's value is the first solver's that reports it solved.
     reach = np.empty(k)
     nu = ker.shape[1]
