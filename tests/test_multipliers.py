@@ -156,6 +156,17 @@ def _reach(qp, scale: float):
     return near, reach
 
 
+def _assert_support_matches_reach(qp, scale: float, ms, threshold: float, found: int) -> None:
+    """The support found (``ms.rows``, more than ``found`` rows) against each row's own reach
+    (:func:`_reach`), both in units of the force scale: a row that can reach ten times
+    ``threshold`` must be in the support, and a row in it must reach half of it."""
+    near, reach = _reach(qp, scale)
+    in_support = np.isin(near, ms.rows)
+    assert in_support.sum() > found
+    assert in_support[reach > 10 * threshold].all()
+    assert (reach[in_support] > 0.5 * threshold).all()
+
+
 def test_the_support_of_a_degenerate_dart_state_is_every_row_some_member_loads():
     # A state of the unslanted 5x5 dart (captured, tests/data/dart_support_qp.npz): 240 rows
     # within 1e-7 L of contact, a 42-dimensional set of balancing forces, the NNLS member a vertex
@@ -166,12 +177,7 @@ def test_the_support_of_a_degenerate_dart_state_is_every_row_some_member_loads()
     # set by at most SUPPORT_FEASIBLE = the threshold).  Measured: the 218 rows found reach
     # >= 9.5e-8, the 22 others <= 1.0e-9.
     qp, scale = _captured("dart_support_qp.npz")
-    ms = multiplier_set(qp, scale)
-    near, reach = _reach(qp, scale)
-    in_support = np.isin(near, ms.rows)
-    assert in_support.sum() > 200
-    assert in_support[reach > 10 * SUPPORT].all()
-    assert (reach[in_support] > 0.5 * SUPPORT).all()
+    _assert_support_matches_reach(qp, scale, multiplier_set(qp, scale), SUPPORT, found=200)
 
 
 def test_a_support_lp_answer_outside_the_set_is_brought_back_into_it():
@@ -189,11 +195,7 @@ def test_a_support_lp_answer_outside_the_set_is_brought_back_into_it():
     ms = multiplier_set(qp, scale)
     assert ms.lam.min() > 0.0  # the mean of members: positive on every supported row
     threshold = max(SUPPORT * scale, NOISE * ms.residual) / scale
-    near, reach = _reach(qp, scale)
-    in_support = np.isin(near, ms.rows)
-    assert in_support.sum() > 100
-    assert in_support[reach > 10 * threshold].all()
-    assert (reach[in_support] > 0.5 * threshold).all()
+    _assert_support_matches_reach(qp, scale, ms, threshold, found=100)
 
 
 def test_into_set_returns_an_answer_inside_the_set_unchanged_and_pulls_one_outside_back():
