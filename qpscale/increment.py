@@ -19,7 +19,7 @@ from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian,
 from .contact.symmetry import Mirror
 from .errors import InvalidDesign
 from .events import Rescue
-from .geometry import rotation_matrix, tangent_operator
+from .geometry import cross, rotation_matrix, tangent_operator
 from .level import LevelOutcome
 from .level import LevelStatus as LevelStatus  # re-exported: a level's outcome is read with it
 from .qp import IncrementQP, resolve_tolerance
@@ -27,6 +27,7 @@ from .solvers import DEFAULT_SOLVER
 from .tiling import Patch
 
 NDOF = 5
+_E_Z = np.array([0.0, 0.0, 1.0])
 # Proximal weight on the separating planes' unknowns (formulations/increment.md sec. 2): makes the
 # QP strictly convex in a plane no row pins; zero at a converged state, so it moves no answer.
 PLANE_PROX = 1e-6
@@ -66,7 +67,7 @@ class LoadPoint:
         a = np.zeros(q.size)
         base = NDOF * self.scale
         a[base + 2] = 1.0
-        a[base + 3 : base + 5] = tangent_operator(u[3:5]).T @ np.cross(r, [0.0, 0.0, 1.0])
+        a[base + 3 : base + 5] = tangent_operator(u[3:5]).T @ cross(r, _E_Z)
         return a
 
     def world(self, patch: Patch, q: np.ndarray) -> np.ndarray:
@@ -176,11 +177,15 @@ def assemble_increment(
     w = np.full(extra, PLANE_PROX) if plane_weight is None else np.asarray(plane_weight, dtype=float)
     n = x.size + extra
     on = np.flatnonzero(a)
-    A = sp.csc_matrix((a[on], (np.zeros(on.size, dtype=int), on)), shape=(1, n))
+    # one entry per nonzero column, in CSC arrays directly (the triplet constructor took 0.2 ms)
+    indptr = np.zeros(n + 1, dtype=np.int32)
+    indptr[on + 1] = 1
+    np.cumsum(indptr, out=indptr)
+    A = sp.csc_matrix((a[on], np.zeros(on.size, dtype=np.int32), indptr), shape=(1, n))
     G = -J.tocsc()
     return IncrementQP.assembled(
         _with_diagonal(K, w),
-        np.r_[K @ x, np.zeros(extra)],
+        np.concatenate([K @ x, np.zeros(extra)]),
         G,
         np.asarray(contacts.gap, dtype=float),
         A,
@@ -195,9 +200,9 @@ def _with_diagonal(K: sp.csc_matrix, w: np.ndarray) -> sp.csc_matrix:
     if not w.size:
         return K
     n, e = K.shape[0], w.size
-    indptr = np.r_[K.indptr, K.indptr[-1] + np.arange(1, e + 1)]
-    indices = np.r_[K.indices, n + np.arange(e)]
-    return sp.csc_matrix((np.r_[K.data, w], indices, indptr), shape=(n + e, n + e))
+    indptr = np.concatenate([K.indptr, K.indptr[-1] + np.arange(1, e + 1, dtype=K.indptr.dtype)])
+    indices = np.concatenate([K.indices, n + np.arange(e, dtype=K.indices.dtype)])
+    return sp.csc_matrix((np.concatenate([K.data, w]), indices, indptr), shape=(n + e, n + e))
 
 
 def _with_mirror(qp: IncrementQP, mirror: Mirror, q: np.ndarray, cs: ContactSet | None) -> IncrementQP:

@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import InvalidDesign
-from ..geometry import Array, tangent_operators
+from ..geometry import Array, cross, tangent_operators
 from ..tiling import Patch
 from .detection import ContactSet, _check_q
 
@@ -25,8 +25,8 @@ def _dof_rows(cs: ContactSet, q: Array, centre: Array) -> tuple[Array, Array]:
     """
     T = tangent_operators(q[:, 3:5])
     n = cs.normal
-    rb = np.cross(cs.xb - centre[cs.b], n)
-    ra = np.cross(cs.xa - centre[cs.a], n)
+    rb = cross(cs.xb - centre[cs.b], n)
+    ra = cross(cs.xa - centre[cs.a], n)
     wb = np.hstack([n, np.einsum("mji,mj->mi", T[cs.b], rb)])
     wa = np.hstack([n, np.einsum("mji,mj->mi", T[cs.a], ra)])
     wb[cs.side < 0] = 0.0
@@ -38,30 +38,39 @@ def gap_jacobian(cs: ContactSet, patch: Patch, q: Array) -> sp.csr_matrix:
     """Jacobian ``(m, 5 n + cs.n_extra)`` of the gaps: eqs. (14)-(17) and (21).
 
     Columns follow scale-major DOF order [u_x, u_y, u_z, phi_x, phi_y] per scale, then the
-    three unknowns (two normal rotations, one shift) of every separating plane.  Built from
-    triplets (10 entries per row, 13 for plane rows).
+    three unknowns (two normal rotations, one shift) of every separating plane.  Each row has
+    13 slots in ascending columns (the lower-numbered scale's five, the other's, its plane's
+    three); the CSR arrays are those slots without their zeros (a plane row's other-scale block,
+    a feature row's plane), the canonical matrix that the triplet constructor and
+    ``eliminate_zeros`` gave at 0.3 ms a call.
     """
     q = _check_q(patch, q)
     centre = np.zeros((patch.n_scales, 3))
     centre[:, :2] = patch.centroids
     centre += q[:, :3]
     wb, wa = _dof_rows(cs, q, centre)
-    rows = np.repeat(np.arange(cs.m), 10)
-    cols = np.hstack([5 * cs.b[:, None] + np.arange(5), 5 * cs.a[:, None] + np.arange(5)]).ravel()
-    vals = np.hstack([wb, wa]).ravel()
     n_dof = 5 * patch.n_scales
+    m = cs.m
+    cols = np.zeros((m, 13), dtype=np.int32)
+    vals = np.zeros((m, 13))
+    b_first = (cs.b < cs.a)[:, None]
+    k = np.arange(5)
+    cols[:, :5] = 5 * np.where(b_first, cs.b[:, None], cs.a[:, None]) + k
+    cols[:, 5:10] = 5 * np.where(b_first, cs.a[:, None], cs.b[:, None]) + k
+    vals[:, :5] = np.where(b_first, wb, wa)
+    vals[:, 5:10] = np.where(b_first, wa, wb)
     if cs.planes is not None and cs.planes.count:
         on = np.flatnonzero(cs.side != 0)
         j, s = cs.plane[on], cs.side[on].astype(float)
         x = np.where((cs.side[on] > 0)[:, None], cs.xb[on], cs.xa[on])
         lever = np.einsum("mki,mk->mi", cs.planes.basis[j], x - cs.planes.point[j])
-        extra = np.hstack([s[:, None] * lever, -s[:, None]])
-        rows = np.r_[rows, np.repeat(on, 3)]
-        cols = np.r_[cols, (n_dof + 3 * j[:, None] + np.arange(3)).ravel()]
-        vals = np.r_[vals, extra.ravel()]
-    J = sp.csr_matrix((vals, (rows, cols)), shape=(cs.m, n_dof + cs.n_extra))
-    J.eliminate_zeros()  # a plane row's other-scale block
-    return J
+        cols[on, 10:] = n_dof + 3 * j[:, None] + np.arange(3)
+        vals[on, 10:12] = s[:, None] * lever
+        vals[on, 12] = -s
+    keep = vals != 0.0
+    indptr = np.zeros(m + 1, dtype=np.int32)
+    np.cumsum(np.count_nonzero(keep, axis=1), out=indptr[1:])
+    return sp.csr_matrix((vals[keep], cols[keep], indptr), shape=(m, n_dof + cs.n_extra))
 
 
 def contact_forces(cs: ContactSet, lam: Array) -> Array:

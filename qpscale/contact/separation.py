@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import Array
+from ..geometry import Array, cross
 from .placement import World
 
 # Edge pairs whose unit directions have |d_a x d_b| below this (sine of their angle) give no axis.
@@ -78,7 +78,7 @@ def separate(world: World, pairs: np.ndarray) -> SAT:
     face_a = pAB.min(axis=0) - pAA.max(axis=0)
     pBA, pBB = _projections(NB, VA), _projections(NB, VB)
     face_b = pBA.min(axis=0) - pBB.max(axis=0)
-    U = np.cross(world.dirs[a, pa][:, :, None, :], world.dirs[b, pb][:, None, :, :])
+    U = cross(world.dirs[a, pa][:, :, None, :], world.dirs[b, pb][:, None, :, :])
     norm = np.linalg.norm(U, axis=-1)
     valid = norm > PARALLEL_SIN
     U = U / np.where(valid, norm, 1.0)[..., None]
