@@ -17,6 +17,7 @@ g_k = n_k . (xb_k - xa_k) is positive when apart, and a multiplier lam_k >= 0 pu
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -272,13 +273,13 @@ def detect_contacts(
 def _plane_set(world: World, q: Array, sat, rows) -> ContactSet:
     """ContactSet of the plane rows: the vertex and its projection on the plane as xb / xa."""
     planes: Planes = rows.planes
-    keys = np.array(planes.keys, dtype=int).reshape(-1, 4)[rows.plane]
+    keys = rows.keys[rows.plane]
     n = planes.normal[rows.plane]
     on_b = (rows.side == SIDE_B)[:, None]
     foot = rows.x - (rows.side * rows.gap)[:, None] * n
     xb, xa = np.where(on_b, rows.x, foot), np.where(on_b, foot, rows.x)
     # "a:pa-b:pb" per plane, then joined to the rows' own labels (one string operation per row).
-    prefix = np.array([f"{a}:{pa}-{b}:{pb} " for a, pa, b, pb in planes.keys], dtype=object)
+    prefix = np.array([_pair_label(key) for key in planes.keys], dtype=object)
     labels = (
         tuple((prefix[rows.plane] + np.array(rows.labels, dtype=object)).tolist()) if len(rows.gap) else ()
     )
@@ -300,6 +301,13 @@ def _plane_set(world: World, q: Array, sat, rows) -> ContactSet:
         plane=rows.plane,
         plane_memory=planes.state(),
     )
+
+
+@lru_cache(maxsize=1 << 16)
+def _pair_label(key: tuple[int, int, int, int]) -> str:
+    """``"a:pa-b:pb "``, the head of a plane's row labels (the same few hundred pairs every
+    linearisation of a path: formatted once)."""
+    return "{}:{}-{}:{} ".format(*key)
 
 
 def _axis_kinds(sat, parts: list[Points]) -> dict:

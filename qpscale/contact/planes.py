@@ -13,10 +13,11 @@ converged state does not depend on which axis the plane started from.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
-from ..geometry import Array
+from ..geometry import Array, cross
 from .placement import World
 from .separation import SAT
 from .symmetry import Mirror
@@ -51,7 +52,7 @@ class Planes:
 
     def state(self) -> dict[tuple[int, int, int, int], tuple[Array, Array]]:
         """key -> (normal, point): what the next linearisation starts from."""
-        return {k: (self.normal[j], self.point[j]) for j, k in enumerate(self.keys)}
+        return dict(zip(self.keys, zip(self.normal, self.point)))  # rows as views, as normal[j] gives
 
     def advanced(self, theta: Array) -> dict[tuple[int, int, int, int], tuple[Array, Array]]:
         """The planes moved by the QP's plane unknowns ``theta`` (3 P,): eq. (22), exact on the sphere."""
@@ -59,15 +60,15 @@ class Planes:
         n = self.normal + np.einsum("pij,pj->pi", self.basis, t[:, :2])
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         p = self.point + t[:, 2:3] * self.normal
-        return {k: (n[j], p[j]) for j, k in enumerate(self.keys)}
+        return dict(zip(self.keys, zip(n, p)))
 
 
 def tangent_basis(n: Array) -> Array:
     """(P, 3, 2) orthonormal pairs spanning the plane orthogonal to each unit row of ``n``."""
     helper = np.where(np.abs(n[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    e1 = np.cross(helper, n)
+    e1 = cross(helper, n)
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(n, e1)
+    e2 = cross(n, e1)
     return np.stack([e1, e2], axis=2)
 
 
@@ -99,6 +100,13 @@ class PlaneRows:
     x: Array  # (m, 3) the vertex, current world position
     gap: Array  # (m,)
     labels: list[str]
+    keys: np.ndarray  # (P, 4) ``planes.keys`` as an array
+
+
+@cache
+def _vertex_names(n_verts: int) -> np.ndarray:
+    """``(2, V)`` row labels ``P{a,b}v{k}`` of the vertices of the piece behind / in front of a plane."""
+    return np.array([[f"P{c}v{v}" for v in range(n_verts)] for c in "ab"], dtype=object)
 
 
 def plane_rows(
@@ -125,7 +133,8 @@ def plane_rows(
     plane is replaced by the mean of itself and its partner's image before the rows are taken.
     """
     rows = np.flatnonzero(active)
-    keys = [(int(sat.a[k]), int(sat.pa[k]), int(sat.b[k]), int(sat.pb[k])) for k in rows]
+    key_array = np.stack([sat.a[rows], sat.pa[rows], sat.b[rows], sat.pb[rows]], axis=1)
+    keys = list(map(tuple, key_array.tolist()))  # Python ints: a fifth of the per-item int()s' time
     VA = world.verts[sat.a[rows], sat.pa[rows]]
     VB = world.verts[sat.b[rows], sat.pb[rows]]
     n = best_axes(sat, world, rows) if len(rows) else np.zeros((0, 3))
@@ -135,9 +144,9 @@ def plane_rows(
     overlapping = sat.sep[rows] < -refresh if refresh is not None else np.zeros(len(rows), dtype=bool)
     kept = np.zeros(len(rows), dtype=bool)
     known = np.flatnonzero(np.array([key in memory for key in keys], dtype=bool) & ~overlapping)
+    nm = np.array([memory[keys[j]][0] for j in known])
+    pm = np.array([memory[keys[j]][1] for j in known])
     if len(known):
-        nm = np.array([memory[keys[j]][0] for j in known])
-        pm = np.array([memory[keys[j]][1] for j in known])
         # A remembered plane that separates the pieces worse than their best axis by more than
         # the margin is stale (it was left behind while the pieces moved on): no step of its
         # linearised rotation reaches a separating position, and the QP would be infeasible.
@@ -148,9 +157,10 @@ def plane_rows(
     if mirror is not None:
         kept = ~mirror.orbit_any(keys, ~kept)
     if kept.any():
-        use = np.flatnonzero(kept)
-        n[use] = np.array([memory[keys[k]][0] for k in use])
-        p[use] = np.array([memory[keys[k]][1] for k in use])
+        use = np.flatnonzero(kept)  # remembered planes only (the mirror only clears more)
+        at = np.searchsorted(known, use)
+        n[use] = nm[at]
+        p[use] = pm[at]
     if mirror is not None:
         n, p = mirror.symmetrise(keys, n, p)
     ga = np.einsum("pk,pvk->pv", n, p[:, None, :] - VA)
@@ -173,8 +183,7 @@ def plane_rows(
     gap = np.concatenate([ga[ja, va], gb[jb, vb]])
     order = np.lexsort((vertex, -side, plane))
     # Row labels from a table of the (side, vertex) names: no string formatting per row.
-    names = np.array(
-        [[f"P{c}v{v}" for v in range(VA.shape[1] if len(rows) else 0)] for c in "ab"], dtype=object
-    )
+    names = _vertex_names(VA.shape[1] if len(rows) else 0)
     labels = names[(side[order] > 0).astype(int), vertex[order]].tolist() if len(order) else []
-    return PlaneRows(planes, plane[order], side[order], vertex[order], x[order], gap[order], labels)
+    order_of = (plane[order], side[order], vertex[order], x[order], gap[order])
+    return PlaneRows(planes, *order_of, labels, key_array)
