@@ -31,6 +31,9 @@ _CHUNK = 1024
 _RANK_TOL = 1e-9
 
 PlaneKey = tuple[int, int, int, int]
+# Slots of an orbit's columns in ascending rows (see ``Mirror._null_columns``).
+_PAIR_ORDER = np.array([3, 4, 5, 0, 1, 2])
+_OWN_ORDER = np.arange(3)
 
 
 def map_dofs(q: np.ndarray, M: np.ndarray, perm: np.ndarray) -> np.ndarray:
@@ -349,11 +352,12 @@ class Mirror:
             free = np.ones((len(columns), width), dtype=bool)
             free[:, :3] = ~rank
             k, j = np.nonzero(free)  # orbit k's null vector Vt[k, j]
-            order = np.argsort(columns, axis=1)
+            # ascending rows: a pair's columns are (image's, own) and the image comes later (js < i_)
+            order = _PAIR_ORDER if width == 6 else _OWN_ORDER
             r = np.zeros((len(k), 6), dtype=int)
             v = np.zeros((len(k), 6))
-            r[:, :width] = np.take_along_axis(columns, order, axis=1)[k]
-            v[:, :width] = np.take_along_axis(Vt[k, j], order[k], axis=1)
+            r[:, :width] = columns[k][:, order]
+            v[:, :width] = Vt[k, j][:, order]
             per = free.sum(axis=1)
             starts = n + np.cumsum(per) - per
             rows.append(r)
