@@ -22,6 +22,8 @@ costs.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import meshio
 import numpy as np
 import shapely
@@ -32,6 +34,9 @@ from skfem.io.meshio import from_meshio
 from .errors import InvalidDesign
 from .membrane import MembraneMesh, graded_axis
 from .tiling import Patch
+
+if TYPE_CHECKING:  # flexure imports the membrane module this one builds on
+    from .experiments.flexure import FlexureSetup
 
 Array = np.ndarray
 
@@ -365,7 +370,7 @@ def extrude(xy: Array, quads: Array, z: Array) -> MeshHex:
     return from_meshio(meshio.Mesh(p, [("hexahedron", cells)]))
 
 
-def fitted_mesh(setup, patch: Patch, along: float = 0.25) -> MembraneMesh:
+def fitted_mesh(setup: FlexureSetup, patch: Patch, along: float = 0.25) -> MembraneMesh:
     """The fitted mesh of a flexure setup with scales, with the tensor mesh's graded layers."""
     from .experiments.flexure import mesh_membrane
 
