@@ -22,8 +22,6 @@ costs.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import meshio
 import numpy as np
 import shapely
@@ -32,11 +30,9 @@ from skfem import MeshHex
 from skfem.io.meshio import from_meshio
 
 from .errors import InvalidDesign
+from .experiments.flexure import FlexureSetup, mesh_membrane
 from .membrane import MembraneMesh, graded_axis
 from .tiling import Patch
-
-if TYPE_CHECKING:  # flexure imports the membrane module this one builds on
-    from .experiments.flexure import FlexureSetup
 
 Array = np.ndarray
 
@@ -372,8 +368,6 @@ def extrude(xy: Array, quads: Array, z: Array) -> MeshHex:
 
 def fitted_mesh(setup: FlexureSetup, patch: Patch, along: float = 0.25) -> MembraneMesh:
     """The fitted mesh of a flexure setup with scales, with the tensor mesh's graded layers."""
-    from .experiments.flexure import mesh_membrane
-
     mem = mesh_membrane(setup, patch)
     n = setup.gap_elements if setup.gap_elements is not None else 2
     xy, quads = fitted_quads(
