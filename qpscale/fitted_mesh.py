@@ -31,7 +31,7 @@ from skfem.io.meshio import from_meshio
 
 from .errors import InvalidDesign
 from .experiments.flexure import FlexureSetup, mesh_membrane
-from .membrane import MembraneMesh, graded_axis
+from .membrane import MembraneMesh, layers
 from .tiling import Patch
 
 Array = np.ndarray
@@ -382,10 +382,4 @@ def fitted_mesh(setup: FlexureSetup, patch: Patch, along: float = 0.25) -> Membr
         span=setup.span,
         axis=setup.axis,
     )
-    if mem.top_h is None:
-        z = np.linspace(0.0, mem.height, mem.nz + 1)
-    else:
-        z = graded_axis(
-            0.0, mem.height, mem.height / mem.nz, (), (mem.height,), h_min=mem.top_h, growth=mem.growth
-        )
-    return MembraneMesh(mem, extrude(xy, quads, z))
+    return MembraneMesh(mem, extrude(xy, quads, layers(mem)))
