@@ -260,7 +260,7 @@ def _held(
     """The held QP in the reduced unknowns xi of :class:`HeldBasis` (sec. 2, Held symmetry).
 
     The same problem as ``_with_mirror``'s, with its equalities solved instead of appended: the
-    DOF columns ``mirror.dof_basis``, each plane orbit's null space (``Mirror.plane_basis``),
+    DOF columns ``mirror.dof_basis``, each plane orbit's null space (``Mirror.plane_block``),
     ``P_r = Z' P Z`` and the rows ``G Z``, ``A Z``.  About half the unknowns and only the load's
     equality (the default path's held QPs: 169 of 341 unknowns and 1 of 174 equalities); a
     mirror pair of contact rows becomes one row written twice.

@@ -198,9 +198,11 @@ def test_symmetric_basis_spans_the_kept_modes(rings, point):
 
 
 def test_plane_basis_is_the_null_space_of_the_plane_rows(corner):
-    # The reduced unknowns of a held QP: the columns must be orthonormal, obey the rows (eq. (27))
-    # and, with the rows, span every plane increment (rank 3 P).  A plane of a pair is dropped
-    # from the set so that one whose image is absent (three free unknowns) is covered too.
+    # The reduced unknowns of a held QP (``Zp`` of ``Mirror.plane_block``): the columns must be
+    # orthonormal, obey the rows (eq. (27)) and, with the rows, span every plane increment (rank
+    # 3 P).  A plane of a pair is dropped from the set so that one whose image is absent (three
+    # free unknowns) is covered too.  The block summed slot by slot equals Zp' diag(w) Zp (for
+    # weights spread over six decades, as the damping's are) to round-off of its largest entry.
     _, patch, _, mirror = corner
     planes = detect_contacts(patch, _symmetric_q(patch, mirror), mirror=mirror).planes
     image, _ = mirror.plane_images(planes.keys)
@@ -210,7 +212,11 @@ def test_plane_basis_is_the_null_space_of_the_plane_rows(corner):
         assert (mirror.plane_images(keys)[0] < 0).sum() == (len(keep) < planes.count)
         point, basis = planes.point[keep], planes.basis[keep]
         rows = mirror.plane_rows(keys, planes.normal[keep], point, basis).toarray()
-        Z = mirror.plane_basis(keys, point, basis).toarray()
+        weight = 10.0 ** np.random.default_rng(len(keys)).uniform(-6.0, 0.0, 3 * len(keys))
+        Zp, S = mirror.plane_block(keys, point, basis, weight)
+        Z = Zp.toarray()
+        H = Z.T @ (weight[:, None] * Z)
+        assert np.abs(S.toarray() - 0.5 * (H + H.T)).max() < 1e-14 * np.abs(H).max()
         assert np.abs(Z.T @ Z - np.eye(Z.shape[1])).max() < 1e-14
         assert np.abs(rows @ Z).max() < 1e-14
         assert len(rows) + Z.shape[1] == 3 * len(keys)

@@ -327,12 +327,12 @@ class Mirror:
     def _null_columns(
         self, keys: Sequence[PlaneKey], point: Array, basis: Array
     ) -> tuple[np.ndarray, Array, np.ndarray, np.ndarray]:
-        """The columns of :meth:`plane_basis`, each as six slots in ascending rows: its rows ``(k, 6)``,
-        values ``(k, 6)`` (zero in unused slots) and the first column and column count of its orbit.
+        """The columns of ``Zp`` (:meth:`plane_block`), each as six slots in ascending rows: its rows
+        ``(k, 6)``, values ``(k, 6)`` (zero in unused slots) and the first column and column count
+        of its orbit.
 
         Lone planes (image absent) give three unit columns, each its own orbit; then the pair
-        orbits' null vectors, then those of the planes on the mirror: the columns' order of
-        :meth:`plane_basis`.
+        orbits' null vectors, then those of the planes on the mirror: the columns' order of ``Zp``.
         """
         image, _ = self.plane_images(keys)
         js, i_, local = self._plane_orbits(keys, point, basis)
@@ -367,19 +367,15 @@ class Mirror:
             n += len(k)
         return np.concatenate(rows), np.concatenate(vals), np.concatenate(first), np.concatenate(count)
 
-    def plane_basis(self, keys: Sequence[PlaneKey], point: Array, basis: Array) -> sp.csc_matrix:
-        """Columns ``(3 P, k)`` (sparse, orthonormal) spanning the plane increments that
-        :meth:`plane_rows` allows: each orbit's null space (the right singular vectors of its
-        block beyond its rank), and the three unknowns of a plane whose image is absent."""
-        rows, vals, _, _ = self._null_columns(keys, point, basis)
-        return _slots_csc(rows, vals, 3 * len(keys))
-
     def plane_block(
         self, keys: Sequence[PlaneKey], point: Array, basis: Array, weight: Array
     ) -> tuple[sp.csc_matrix, sp.csc_matrix]:
-        """:meth:`plane_basis` ``Zp`` and the plane block of a held QP's Hessian for the diagonal
-        ``weight`` ``(3 P,)``: ``S = (H + H') / 2``, ``H = Zp' diag(weight) Zp`` (formulations/
-        increment.md sec. 2, Held symmetry).
+        """``Zp`` and the plane block of a held QP's Hessian for the diagonal ``weight`` ``(3 P,)``:
+        ``S = (H + H') / 2``, ``H = Zp' diag(weight) Zp`` (formulations/increment.md sec. 2, Held
+        symmetry).  ``Zp``: columns ``(3 P, k)`` (sparse, orthonormal) spanning the plane
+        increments that :meth:`plane_rows` allows, each orbit's null space (the right singular
+        vectors of its block beyond its rank), and the three unknowns of a plane whose image is
+        absent.
 
         Both in CSC, built from each column's six slots (scipy's triplet constructor and its
         sparse products took 0.7 ms a held QP on the default scene).  ``H`` is block diagonal by
