@@ -239,3 +239,29 @@ def test_plane_images_match_a_key_by_key_reference(corner):
     # a key whose image is absent maps to -1
     image, _ = mirror.plane_images(keys[:1])
     assert image[0] in (-1, 0)
+
+
+@pytest.mark.parametrize("shape", ["square", "triangle", "hexagon"])
+def test_held_planes_at_the_unloaded_state_separate_every_pair_by_half_the_gap(shape):
+    # q = 0: every near pair stands d = 0.005 L apart along its shared edge (farther at a corner:
+    # d sqrt(2) across a square's diagonal), so a plane half-way between its pieces leaves each
+    # row's vertex at least d/2 from it, and at most d here (a plane turned by the mean keeps half
+    # the corners' clearance: d/sqrt(2) for the square, d sqrt(3)/2 for the triangle).  The held path's
+    # planes are the means of a plane and its partner's image (eq. (26)); a diagonal pair of the
+    # 5x5 square on the mirror line has axes x and y for the two, and with the planes' points at
+    # the feet of the origin their mean plane lay 2.1 L on the wrong side of the pair.
+    import numpy as np
+
+    from qpscale.contact import ContactSettings, detect_contacts
+    from qpscale.experiments.puncture import top_vertices
+    from qpscale.experiments.symmetry import mirror_through
+    from qpscale.tiling import Design
+
+    patch = Design(shape=shape, rings=2).patch()
+    q = np.zeros((patch.n_scales, 5))
+    lines = [mirror_through(patch, np.asarray(v[:2])) for v in top_vertices(patch)]
+    assert any(m is not None for m in lines)
+    for m in filter(None, lines):
+        cs = detect_contacts(patch, q, ContactSettings(), mirror=Mirror.of(patch, *m))
+        gap = np.asarray(cs.gap)
+        assert gap.min() >= 0.0025 - 1e-12 and gap.max() <= 0.005, (gap.min(), gap.max())

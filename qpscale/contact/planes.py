@@ -139,7 +139,12 @@ def plane_rows(
     VB = world.verts[sat.b[rows], sat.pb[rows]]
     n = best_axes(sat, world, rows) if len(rows) else np.zeros((0, 3))
     h = 0.5 * (np.einsum("pvk,pk->pv", VA, n).max(axis=1) + np.einsum("pvk,pk->pv", VB, n).min(axis=1))
-    p = h[:, None] * n
+    # The new plane's point: the foot of the pieces' mid-point on it, near the pair.  (The foot of
+    # the origin, h n, lies up to the patch's size away along the plane; on a held path the mean
+    # of such a point and its partner's image, eq. (26), left the mean plane there, and a corner
+    # pair of the 9x9 square on the mirror line started 4.96 L on the wrong side of it.)
+    mid = 0.5 * (VA.mean(axis=1) + VB.mean(axis=1))
+    p = mid + (h - np.einsum("pk,pk->p", n, mid))[:, None] * n
     memory = memory or {}
     overlapping = sat.sep[rows] < -refresh if refresh is not None else np.zeros(len(rows), dtype=bool)
     kept = np.zeros(len(rows), dtype=bool)
