@@ -50,6 +50,8 @@ DEFAULT_RINGS = 2
 # Formats matplotlib writes without extra packages ("" is drawn as PNG).
 DRAWING_SUFFIXES = ("", ".png", ".svg", ".pdf")
 DEFAULT_L_MM = 2.0
+# --condense: the screened, condensed QP (formulations/increment.md sec. 2c) from 49 scales, always, never.
+CONDENSE: dict[str, bool | None] = {"auto": None, "on": True, "off": False}
 DOF_KEYS = ("Kx", "Ky", "Kz", "Kphix", "Kphiy")
 DESIGN_DEFAULTS: dict[str, Any] = {
     "shape": "square",
@@ -388,6 +390,7 @@ def puncture(
     rings_tol: float | None = None,
     max_increments: int = v.DEFAULT_MAX_INCREMENTS,
     edges: str = "clamped",
+    condense: str = "auto",
 ) -> PunctureReport:
     """Puncture: push a top-face point of the centre scale down until its tilt reaches phi_c.
 
@@ -449,6 +452,11 @@ def puncture(
         outer ring is a stiff frame; the paper's 5x5 comparison) or ``local`` (each scale's own
         neighbourhood: the 5x5 matches a boundary-element solve of the whole patch to 0.02 %,
         formulations/substrate.md sec. 9).
+    condense : {"auto", "on", "off"}
+        Solve each QP on the contact rows that can act and the DOFs they touch, the rest of the
+        patch eliminated through its stiffness factored once (formulations/increment.md sec. 2c):
+        the same answer, in QPs the size of the contact region.  ``auto`` (default): from 49
+        scales (7x7) on; ``on`` / ``off`` for every patch.  Not with ``penalty``.
 
     Returns
     -------
@@ -483,6 +491,9 @@ def puncture(
 
     rows = v.choice("formulation", formulation, FORMULATIONS)
     edge_model = v.choice("edges", edges, EDGES)
+    condensed = v.choice("condense", condense, tuple(CONDENSE))
+    if backend == "penalty" and condensed != "auto":
+        raise v.conflict("solver", "condense", "the penalty baseline solves no QP")
     if backend == "penalty" and accuracy is not None:
         raise v.conflict("solver", "accuracy", "the penalty baseline has no QP tolerance")
     tol = v.accuracy("high" if accuracy is None else accuracy)
@@ -524,7 +535,7 @@ def puncture(
         phi_c_deg=phi_c,
         load_point=xy,
         probe=bool(probe),
-        sqp=SQPSettings(solver=backend, accuracy=tol),
+        sqp=SQPSettings(solver=backend, accuracy=tol, condense=CONDENSE[condensed]),
         contact=ContactSettings(formulation=rows),
         max_increments=budget,
         edges=edge_model,
@@ -549,6 +560,7 @@ def puncture(
         "interaction": mode,
         "coupling_factor": setup.coupling_factor,
         "edges": edge_model,
+        "condense": condensed,
         "curve": {
             "w_star": result.w_star.tolist(),
             "F_star": result.F_star.tolist(),

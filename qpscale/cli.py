@@ -72,6 +72,7 @@ RANGES: dict[str, str] = {
     "--mesh-h": "[0.05, 2] L, within the memory and time limits",
     "--formulation": "{plane, feature}",
     "--edges": "{clamped, local}",
+    "--condense": "{auto, on, off}",
     "--roller-radius": "(0, 3.75) L (half the span less the plate's width)",
     "--top-h": "(0, 1.5 / layers] L (default: d / 2 with scales, uniform layers bare)",
     "--refinement": "integers in [2, 16]",
@@ -472,6 +473,15 @@ def puncture(
             "local (their own neighbourhood).",
         ),
     ),
+    condense: str = typer.Option(
+        "auto",
+        "--condense",
+        help=_help(
+            "--condense",
+            "Solve each QP on the contact region's rows and DOFs, the rest of the patch eliminated "
+            "(auto: from 7x7 on).",
+        ),
+    ),
     load_point: tuple[float, float] | None = typer.Option(
         None,
         "--load-point",
@@ -524,6 +534,7 @@ def puncture(
             rings_tol=rings_tol,
             max_increments=max_increments,
             edges=edges,
+            condense=condense,
         )
 
     def summary(p: dict[str, Any]) -> None:

@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import scipy.sparse as sp
 
-from . import level
+from . import condensation, level
 from .contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from .contact.symmetry import Mirror
 from .errors import InvalidDesign
@@ -104,6 +104,11 @@ class SQPSettings:
         2-cycle of nearly parallel edges, but creeps where a plane has far to travel.  Converged
         states are the same either way; off by default, and the puncture path solves a level
         that fails with one setting again with the other (puncture.md sec. 2).
+    condense : bool or None
+        Solve each QP on the rows that can act and the DOFs they touch, the rest eliminated
+        through the path's factored stiffness (``qpscale.condensation``, sec. 2c): the same
+        answer, in QPs the size of the contact region instead of the patch.  None (default):
+        from ``condensation.AUTO_FROM`` scales on.
     """
 
     solver: str = DEFAULT_SOLVER
@@ -113,6 +118,7 @@ class SQPSettings:
     max_iter: int = 60
     anderson_depth: int = 5
     plane_damping: bool = False
+    condense: bool | None = None
 
     def __post_init__(self) -> None:
         tol = resolve_tolerance(self.accuracy)
@@ -494,6 +500,9 @@ class _SequentialQP:
     def __init__(self, at: PunctureLevel, reduced: bool = True) -> None:
         s = at.settings
         self.at, self.damping, self.reduced = at, PlaneDamping(), reduced
+        self.joined: set[int] = set()  # pairs a step brought into the screened QP (sec. 2c)
+        n = len(at.patch.centroids)
+        self.condense = s.condense if s.condense is not None else n >= condensation.AUTO_FROM
         self.controls = level.LevelControls(
             s.solver, at.delta, at.increment, s.step_tol, s.penetration_tol, s.max_iter, s.anderson_depth
         )
@@ -516,7 +525,15 @@ class _SequentialQP:
     def solve(self, lin: _Linearised, tightened: bool) -> level.Step[Equilibrium]:
         q, qp, cs, held = lin
         at, s = self.at, self.at.settings
-        res, step = level.qp_step(qp, s.solver, s.accuracy, tightened, at.increment)
+        if self.condense:
+            Kc = at.K if held is None or at.mirror is None else at.mirror.reduced_stiffness(at.K)
+            groups = cs.a * len(at.patch.centroids) + cs.b if cs is not None else np.zeros(0, dtype=int)
+            block = condensation.constant_block(Kc)
+            res, step = condensation.screened_step(
+                qp, block, groups, self.joined, s.solver, s.accuracy, tightened, at.increment
+            )
+        else:
+            res, step = level.qp_step(qp, s.solver, s.accuracy, tightened, at.increment)
         if res is None:
             return step
         x = np.asarray(res.x) if held is None else held.lift(np.asarray(res.x))
