@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from .level import Step, qp_step
-from .qp import IncrementQP, IncrementResult
+from .qp import IncrementQP, IncrementResult, block_diagonal
 
 # Contact rows whose gap is at least this (L) at the linearisation are screened out of the QP.
 # The design gaps are 0.005 L by default: a pair enters once its gap has closed to a fifth of that.
@@ -146,15 +146,13 @@ def screened_step(
     """
     t0 = time.perf_counter()
     G, h, A, b = qp.rows()
-    nq = block.n
     Gr = G.tocsr()
     Ar = A.tocsr()
-    xstar = -block.solve(qp.q[:nq])
     rounds, seconds = 0, 0.0
     near = np.unique(groups[h < SCREEN_GAP])
     while True:
         rows = np.isin(groups, np.union1d(near, np.fromiter(joined, dtype=groups.dtype, count=len(joined))))
-        reduced, lift = _condensed_qp(qp, block, Gr, Ar, rows, xstar)
+        reduced, lift = _condensed_qp(qp, block, Gr, Ar, rows)
         build = time.perf_counter() - t0
         res, step = qp_step(reduced, solver, accuracy, tightened, increment)
         seconds += build + step.seconds
@@ -194,7 +192,7 @@ class _Lift:
     def __init__(
         self,
         n: int,
-        xstar: np.ndarray,
+        xstar: np.ndarray | None,
         B: np.ndarray,
         extra: np.ndarray,
         S: np.ndarray | None = None,
@@ -206,7 +204,7 @@ class _Lift:
     def __call__(self, xr: np.ndarray) -> np.ndarray:
         x = np.zeros(self.n)
         nb = self.B.size
-        if self.S is None or self.H is None:  # every DOF kept
+        if self.S is None or self.H is None or self.xstar is None:  # every DOF kept
             x[:nb] = xr[:nb]
         else:
             x[: self.xstar.size] = self.xstar + self.H @ (self.S @ (xr[:nb] - self.xstar[self.B]))
@@ -220,7 +218,6 @@ def _condensed_qp(
     Gr: sp.csr_matrix,
     Ar: sp.csr_matrix,
     rows: np.ndarray,
-    xstar: np.ndarray,
 ) -> tuple[IncrementQP, _Lift]:
     """The QP on the inequality ``rows`` in the DOFs they (or the equalities) touch and the extra
     unknowns they touch (with those coupled to them through ``P_e``), eqs. (4c)."""
@@ -232,12 +229,14 @@ def _condensed_qp(
     Pe = qp.P[extra][:, extra]
     if B.size > min(CONDENSE_FRACTION * nq, CONDENSE_MAX):
         B = np.arange(nq)
-        S = H = None
-        P = sp.block_diag((block.K, Pe), format="csc")
+        S = H = xstar = None
+        P = block_diagonal(block.K, Pe)
         q = np.concatenate([qp.q[:nq], qp.q[extra]])
     else:
+        # the unconstrained minimiser x* = -Kc^-1 c: only a condensed QP needs it
+        xstar = -block.solve(qp.q[:nq])
         S, H = block.condensed(B)
-        P = sp.block_diag((sp.csc_matrix(S), Pe), format="csc")
+        P = block_diagonal(sp.csc_matrix(S), Pe)
         q = np.concatenate([-S @ xstar[B], qp.q[extra]])
     keep = np.concatenate([B, extra])
     reduced = IncrementQP.assembled(

@@ -421,3 +421,12 @@ def accept(result: IncrementResult, tol: float) -> IncrementResult:
         result.iterations,
         extras,
     )
+
+
+def block_diagonal(X: sp.csc_matrix, Y: sp.csc_matrix) -> sp.csc_matrix:
+    """``blockdiag(X, Y)`` of two CSC matrices, by appending Y's arrays to X's: the same arrays as
+    scipy's ``block_diag`` of two canonical matrices (which took 0.4 ms a call)."""
+    (r, c), (ry, cy) = X.shape, Y.shape
+    indptr = np.concatenate([X.indptr, X.nnz + Y.indptr[1:]])
+    indices = np.concatenate([X.indices, r + Y.indices])
+    return sp.csc_matrix((np.concatenate([X.data, Y.data]), indices, indptr), shape=(r + ry, c + cy))

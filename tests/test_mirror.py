@@ -250,12 +250,8 @@ def test_held_planes_at_the_unloaded_state_separate_every_pair_by_half_the_gap(s
     # planes are the means of a plane and its partner's image (eq. (26)); a diagonal pair of the
     # 5x5 square on the mirror line has axes x and y for the two, and with the planes' points at
     # the feet of the origin their mean plane lay 2.1 L on the wrong side of the pair.
-    import numpy as np
-
-    from qpscale.contact import ContactSettings, detect_contacts
+    from qpscale.contact import ContactSettings
     from qpscale.experiments.puncture import top_vertices
-    from qpscale.experiments.symmetry import mirror_through
-    from qpscale.tiling import Design
 
     patch = Design(shape=shape, rings=2).patch()
     q = np.zeros((patch.n_scales, 5))
