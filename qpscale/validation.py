@@ -55,6 +55,7 @@ FLAG_OF: dict[str, str] = {
     "nz": "--mesh-h",
     "formulation": "--formulation",
     "edges": "--edges",
+    "condense": "--condense",
     "refinement": "--refinement",
     "workers": "--workers",
     "scheduler": "--scheduler",

@@ -70,6 +70,22 @@ def test_bad_input_exits_2_with_one_line(args, flag):
     assert len(lines) == 1 and lines[0].startswith(f"error: {flag}")
 
 
+@pytest.mark.parametrize(
+    "args, start",
+    [
+        (["--condense", "yes"], "error: --condense"),
+        (["--condense", "on", "--solver", "penalty"], "error: --solver and --condense"),
+    ],
+)
+def test_puncture_refuses_a_bad_condense_naming_the_flags(args, start):
+    # A value outside {auto, on, off}, and an explicit choice with the penalty baseline (which
+    # solves no QP): exit 2 before any run, one line naming the flags as the user typed them.
+    result = run("puncture", *args)
+    assert result.exit_code == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(start), lines
+
+
 @pytest.mark.parametrize("value", ["0", "-150e3"])
 def test_puncture_rejects_nonpositive_substrate_modulus_before_running(value):
     # E_s <= 0 (issue #4's bad input) is refused up front: exit 2, one line naming the flag, and no
