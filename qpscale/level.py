@@ -20,6 +20,7 @@ from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
 
+from . import active_set
 from .contact import ContactSet
 from .errors import SolverFailure
 from .events import Rescue
@@ -28,11 +29,12 @@ from .solvers import solve_qp
 
 # A load level whose step has not halved over STALL_WINDOW iterations while below STALL_BAND is
 # stalled on solver noise (a plane hinge fixed only to the QP tolerance over PLANE_PROX,
-# formulations/increment.md sec. 4, "Stall on noise"); its remaining QPs are solved at
-# STALL_TIGHTEN x the tolerance.  Above STALL_BAND a slow step is the path's geometry, not noise.
+# formulations/increment.md sec. 4, "Stall on noise"); the answers of its remaining QPs are made
+# exact by the sparse active-set solve, started from them, in at most EXACT_OUTER outer steps.
+# Above STALL_BAND a slow step is the path's geometry, not noise.
 STALL_WINDOW = 8
 STALL_BAND = 1e-5
-STALL_TIGHTEN = 1e-2
+EXACT_OUTER = 20
 # A step this many times the last restarts Anderson's history (sec. 4, Acceleration): a mildly
 # expanding mode is what the extrapolation cures, a leap out of the smooth region is not.
 ANDERSON_GROWTH = 2.0
@@ -164,6 +166,9 @@ class Step(Generic[S]):
         The largest step of the unknowns beside the DOFs that the next linearisation sees (the
         separating planes' rotations and shifts, in rad and L); 0 when there are none; inf (the
         default) when the problem does not report it, and then every converged step is confirmed.
+    exact : bool or None
+        Whether an answer asked to be exact (``tightened``) was made the QP's exact solution;
+        None when it was not asked.
     """
 
     answer: S | None = None
@@ -175,6 +180,7 @@ class Step(Generic[S]):
     work: int = 1
     retried: str | None = None
     swing: float = float("inf")
+    exact: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -194,7 +200,7 @@ class LevelProblem(Protocol[L, S]):
 
     How to linearise at an iterate with the rows carried from the last step (``refresh``:
     restart the overlapping pairs' planes, contact.md sec. 7), how to solve one linearisation
-    (``tightened``: at ``STALL_TIGHTEN`` times its tolerance) into a step, the exact overlap
+    (``tightened``: the answer made exact, ``qp_step``) into a step, the exact overlap
     at a configuration, and the converged state from the last step's answer.  A problem object
     serves one attempt at one level: it may keep that attempt's memory.
     """
@@ -221,9 +227,9 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
     the exact penetration at ``x + dx`` is at most ``penetration_tol``, eq. (6), otherwise the
     iteration goes on with the overlapping pairs' planes refreshed.  While the row set keeps its
     labels the iterates are Anderson-accelerated (DOFs and planes together, ``_accelerated``).
-    A level whose steps stall on solver noise (``_stalled``) is solved on at ``STALL_TIGHTEN``
-    times the tolerance, once, and back at the tolerance if the backend cannot reach that
-    (``stall_tighten``); a QP answered only on its retry is recorded (``qp_retry``).  ``rows``
+    A level whose steps stall on solver noise (``_stalled``) is solved on with exact answers,
+    once, and back at the backend's own answers if the exact solve does not converge (``stall_tighten``);
+    a QP answered only on its retry is recorded (``qp_retry``).  ``rows``
     is the contact set carried in from the starting state.
     """
     c = problem.controls
@@ -245,12 +251,10 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
         build_s += time.perf_counter() - t0
         step = problem.solve(lin, tightened)
         solves += step.work + (step.retried is not None)
-        if step.answer is None and tightened:
-            # The backend cannot reach the tightened tolerance: back to the one asked for.
+        if tightened and step.exact is False:
+            # The answer could not be made exact: the level goes on with the backend's answers.
             tightened = False
-            rescues.append(Rescue("stall_tighten", c.delta, c.increment, "tightened tolerance not reached"))
-            step = problem.solve(lin, tightened)
-            solves += step.work + (step.retried is not None)
+            rescues.append(Rescue("stall_tighten", c.delta, c.increment, "exact solve not reached"))
         if step.retried is not None:
             rescues.append(Rescue("qp_retry", c.delta, c.increment, f"first status {step.retried}"))
         if step.answer is None:
@@ -298,22 +302,48 @@ def qp_step(
 ) -> tuple[IncrementResult | None, Step[Any]]:
     """``solve_qp`` as a level's solve: the answer if it passed its check, and the step so far.
 
-    ``tightened``: at ``STALL_TIGHTEN`` times the tolerance of ``accuracy``.  The step carries
+    ``tightened``: the answer made the QP's exact solution (``_exact``).  The step carries
     the solve's time and, when the answer came only on ``solve_qp``'s own retry, its first
     status; without an answer (None), the failure to report.  ``solve_qp`` runs without raising
     (``check=False``, the reason of a rejection in ``extras["detail"]``); a backend that raises
     (bad data, an exception inside it) is a rejected answer too.
     """
-    tol = STALL_TIGHTEN * resolve_tolerance(accuracy) if tightened else accuracy
     try:
-        res = solve_qp(qp, solver=solver, accuracy=tol, check=False)
+        res = solve_qp(qp, solver=solver, accuracy=accuracy, check=False)
     except SolverFailure as exc:
         return None, Step(failure=SolverFailure(solver, exc.status, increment, exc.detail))
     retried = str(res.extras.get("first_status")) if res.extras.get("retried") else None
     if not res.found or res.x is None or res.y is None or res.z is None or res.residuals is None:
         failure = SolverFailure(solver, res.status, increment, res.extras.get("detail", ""))
         return None, Step(failure=failure, retried=retried)
+    if tightened:
+        return _exact(qp, res, solver, accuracy, increment, retried)
     return res, Step(seconds=res.build_s + res.solve_s, retried=retried)
+
+
+def _exact(
+    qp: IncrementQP,
+    res: IncrementResult,
+    solver: str,
+    accuracy: str | float,
+    increment: int | None,
+    retried: str | None,
+) -> tuple[IncrementResult, Step[Any]]:
+    """The backend's answer ``res`` made the QP's exact solution: the sparse active-set solve of
+    the exact check (``active_set.solve_sparse``, formulations/increment-qp.md sec. 8) started from
+    it, at most ``EXACT_OUTER`` outer steps, accepted when its residuals are within the tolerance
+    of ``accuracy`` (they are at rounding).  The remedy of ``stall_tighten`` (formulations/
+    increment.md sec. 4, "Stall on noise"); the backend's own answer, with the step's ``exact``
+    False, when the solve does not converge."""
+    assert res.x is not None and res.z is not None and res.y is not None
+    t0 = time.perf_counter()
+    s = active_set.solve_sparse(qp, res.x, res.z, res.y, delta0=active_set.DELTA, max_outer=EXACT_OUTER)
+    seconds = res.build_s + res.solve_s + time.perf_counter() - t0
+    residuals = qp.residuals(s.x, s.z, s.y)
+    if not s.converged or max(residuals.values()) > resolve_tolerance(accuracy):
+        return res, Step(seconds=seconds, retried=retried, exact=False)
+    exact = replace(res, x=s.x, z=s.z, y=s.y, residuals=residuals, solve_s=seconds - res.build_s)
+    return exact, Step(seconds=seconds, retried=retried, exact=True)
 
 
 def relaxation(omega: float, dx: np.ndarray, last: np.ndarray) -> float:

@@ -44,7 +44,7 @@ class Faults:
     5e-9 off in x (residuals ~1e-8: a near miss of the 1e-9 check); ``noise``: every answer at
     the ordinary tolerance is the exact answer of the QP with its linear term moved by up to this
     much (it passes the 1e-9 check, and its dq carries noise of that size over K's smallest
-    eigenvalue); answers at a tightened tolerance are exact.  ``active`` off lifts every fault.
+    eigenvalue).  ``active`` off lifts every fault.
     """
 
     def __init__(
@@ -171,14 +171,39 @@ def test_other_plane_update_fires_when_the_first_attempt_fails_and_keeps_the_sta
 
 def test_stall_tighten_fires_when_the_steps_stall_on_solver_noise_and_keeps_the_state(level, monkeypatch):
     # Answers accurate to 5e-10 (they pass the 1e-9 check) move dq by ~1e-9 at random: with a step
-    # test of 1e-10 the level stalls on that noise, its remaining QPs are solved at 1e-11 (exact
-    # here), and it converges to the state the ordinary level reaches.
+    # test of 1e-10 the level stalls on that noise, the noisy answers of its remaining QPs are
+    # made exact by the sparse active-set solve (the backend still adds its noise), and it
+    # converges to the state the ordinary level reaches.
     args, clean = level
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(noise=5e-10))
     out = PunctureLevel(*args, replace(CLARABEL, step_tol=1e-10)).solve()
-    assert "stall_tighten" in [r.rescue for r in out.rescues]
+    assert [r.rescue for r in out.rescues] == ["stall_tighten"]
     assert out.converged and out.state.tightened
+    # The last QP's answer is exact: its KKT residuals, from the QP's data, are at rounding (the
+    # noisy answers' are ~1e-10).
+    assert max(out.state.residuals.values()) <= 1e-13
     _same_state(out.state, clean)
+
+
+def test_stall_tighten_that_cannot_make_an_answer_exact_is_recorded_and_no_state_is_made_up(
+    level, monkeypatch
+):
+    # The same stall with an exact solve that does not converge: the level goes on with the noisy
+    # answers, records why, and ends "not converged" with its status (never a state).
+    import qpscale.active_set
+
+    args, _ = level
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(noise=5e-10))
+
+    def no_exact(qp, x0, z0, y0, **kw):
+        return qpscale.active_set.SparseSolution(x0, z0, y0, False, "outer iteration limit 20", 20, 0, 0)
+
+    monkeypatch.setattr(qpscale.active_set, "solve_sparse", no_exact)
+    out = PunctureLevel(*args, replace(CLARABEL, step_tol=1e-10)).solve()
+    details = [r.detail for r in out.rescues if r.rescue == "stall_tighten"]
+    assert "exact solve not reached" in details
+    assert not out.converged and out.state is None
+    assert out.failure is not None and out.failure.status == "sequential QP did not converge"
 
 
 @pytest.fixture(scope="module")
@@ -196,8 +221,9 @@ def plate():
 
 def _same_position(model, w, clean, **faults):
     """The position solved again under ``faults``: its outcome, and its state checked against the
-    clean one.  The sequential QP stops at steps of 1e-9 L, each QP answered to 1e-9 (1e-11 once
-    tightened), so the states differ by ~1e-9 in z and the plate force by ~1e-9 of itself."""
+    clean one.  The sequential QP stops at steps of 1e-9 L, each QP answered to 1e-9 (exactly once
+    a stall made it so), so the states differ by ~1e-9 in z and the plate force by ~1e-9 of
+    itself."""
     with pytest.MonkeyPatch.context() as mp:
         mp.setitem(solvers._REGISTRY, "clarabel", Faults(**faults))
         out = flexure.solve_position(model, np.zeros(len(model.cond.retained)), w, 1, None)
@@ -232,8 +258,8 @@ def test_flexure_qp_retry_fires_on_a_near_miss_and_keeps_the_state(plate):
 
 def test_flexure_stall_tighten_fires_on_solver_noise_and_keeps_the_state(plate):
     # Answers accurate to 5e-10 (they pass the 1e-9 check) move z by ~3e-9 at random through the
-    # soft membrane, above the step test of 1e-9 L: the position stalls on that noise, its
-    # remaining QPs are solved at 1e-11 (exact here) and it converges to the clean state.
+    # soft membrane, above the step test of 1e-9 L: the position stalls on that noise, the answers
+    # of its remaining QPs are made exact and it converges to the clean state.
     model, w, clean = plate
     out = _same_position(model, w, clean, noise=5e-10)
     assert [r.rescue for r in out.rescues] == ["stall_tighten"]
