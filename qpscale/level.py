@@ -29,9 +29,10 @@ from .solvers import solve_qp
 
 # A load level whose step has not halved over STALL_WINDOW iterations while below STALL_BAND is
 # stalled on solver noise (a plane hinge fixed only to the QP tolerance over PLANE_PROX,
-# formulations/increment.md sec. 4, "Stall on noise"); the answers of its remaining QPs are made
-# exact by the sparse active-set solve, started from them, in at most EXACT_OUTER outer steps.
-# Above STALL_BAND a slow step is the path's geometry, not noise.
+# formulations/increment.md sec. 4, "Stall on noise"); the answers of its next STALL_WINDOW QPs
+# are made exact by the sparse active-set solve, started from them, in at most EXACT_OUTER outer
+# steps (a level they do not converge is not stalled on noise).  Above STALL_BAND a slow step is
+# the path's geometry, not noise.
 STALL_WINDOW = 8
 STALL_BAND = 1e-5
 EXACT_OUTER = 20
@@ -228,7 +229,8 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
     iteration goes on with the overlapping pairs' planes refreshed.  While the row set keeps its
     labels the iterates are Anderson-accelerated (DOFs and planes together, ``_accelerated``).
     A level whose steps stall on solver noise (``_stalled``) is solved on with exact answers,
-    once, and back at the backend's own answers if the exact solve does not converge (``stall_tighten``);
+    once, for at most ``STALL_WINDOW`` QPs, and back at the backend's own answers if the exact
+    solve does not converge (``stall_tighten``);
     a QP answered only on its retry is recorded (``qp_retry``).  ``rows``
     is the contact set carried in from the starting state.
     """
@@ -239,6 +241,7 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
     dx = np.zeros_like(x)
     refresh: float | None = None
     tightened = tighten_tried = confirmed = False
+    exact_left = 0
     steps: list[float] = []
     omega, last = 1.0, np.zeros(0)
     rescues: list[Rescue] = []
@@ -255,6 +258,8 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
             # The answer could not be made exact: the level goes on with the backend's answers.
             tightened = False
             rescues.append(Rescue("stall_tighten", c.delta, c.increment, "exact solve not reached"))
+        elif tightened:
+            exact_left -= 1
         if step.retried is not None:
             rescues.append(Rescue("qp_retry", c.delta, c.increment, f"first status {step.retried}"))
         if step.answer is None:
@@ -283,8 +288,14 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
             accel.reset()
             confirmed = False
         steps.append(size)
+        if tightened and not exact_left:
+            # Exact answers have not converged the level: its stall is not the backend's noise (a
+            # cycle of the iteration, a slow mode), which exact answers repeat at their cost.
+            tightened = False
+            rescues.append(Rescue("stall_tighten", c.delta, c.increment, "not noise: exact answers ended"))
         if c.tighten and not tighten_tried and _stalled(steps):
             tightened = tighten_tried = True
+            exact_left = STALL_WINDOW
             rescues.append(Rescue("stall_tighten", c.delta, c.increment, f"|dx| {size:.3g} stalled"))
         if step.labels != labels:
             accel.reset()

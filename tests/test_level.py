@@ -17,6 +17,7 @@ import pytest
 from typer.testing import CliRunner
 
 import qpscale.continuation as continuation
+import qpscale.level as level_module
 import qpscale.solvers as solvers
 from qpscale import Design
 from qpscale.cli import app
@@ -204,6 +205,33 @@ def test_stall_tighten_that_cannot_make_an_answer_exact_is_recorded_and_no_state
     assert "exact solve not reached" in details
     assert not out.converged and out.state is None
     assert out.failure is not None and out.failure.status == "sequential QP did not converge"
+
+
+def test_stall_tighten_ends_the_exact_answers_of_a_level_they_do_not_converge(level, monkeypatch):
+    # An "exact" solve that hands the noisy answer back (it passes the residual check): the level
+    # still stalls, so after STALL_WINDOW exact answers the stall is taken as no noise (a cycle of
+    # the iteration, which exact answers repeat) and they end, recorded; the level fails with its
+    # status.
+    import qpscale.active_set
+
+    args, _ = level
+    faults = Faults(noise=5e-10)
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
+    exact_calls = []
+
+    def echo(qp, x0, z0, y0, **kw):
+        exact_calls.append(1)
+        return qpscale.active_set.SparseSolution(x0, z0, y0, True, "converged", 1, 1, 1)
+
+    monkeypatch.setattr(qpscale.active_set, "solve_sparse", echo)
+    out = PunctureLevel(*args, replace(CLARABEL, step_tol=1e-10)).solve()
+    details = [r.detail for r in out.rescues if r.rescue == "stall_tighten"]
+    assert "not noise: exact answers ended" in details
+    # Each attempt at the level (the first plane update, then the other) stalls once and makes
+    # at most STALL_WINDOW answers exact.
+    attempts = sum(1 for d in details if d.endswith("stalled"))
+    assert 1 <= attempts and len(exact_calls) == attempts * level_module.STALL_WINDOW
+    assert not out.converged and out.failure.status == "sequential QP did not converge"
 
 
 @pytest.fixture(scope="module")
