@@ -230,9 +230,8 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
     labels the iterates are Anderson-accelerated (DOFs and planes together, ``_accelerated``).
     A level whose steps stall on solver noise (``_stalled``) is solved on with exact answers,
     once, for at most ``STALL_WINDOW`` QPs, and back at the backend's own answers if the exact
-    solve does not converge (``stall_tighten``);
-    a QP answered only on its retry is recorded (``qp_retry``).  ``rows``
-    is the contact set carried in from the starting state.
+    solve does not converge (``stall_tighten``); a QP answered only on its retry is recorded
+    (``qp_retry``).  ``rows`` is the contact set carried in from the starting state.
     """
     c = problem.controls
     x = np.array(start, dtype=float, copy=True)
@@ -328,17 +327,12 @@ def qp_step(
         failure = SolverFailure(solver, res.status, increment, res.extras.get("detail", ""))
         return None, Step(failure=failure, retried=retried)
     if tightened:
-        return _exact(qp, res, solver, accuracy, increment, retried)
+        return _exact(qp, res, accuracy, retried)
     return res, Step(seconds=res.build_s + res.solve_s, retried=retried)
 
 
 def _exact(
-    qp: IncrementQP,
-    res: IncrementResult,
-    solver: str,
-    accuracy: str | float,
-    increment: int | None,
-    retried: str | None,
+    qp: IncrementQP, res: IncrementResult, accuracy: str | float, retried: str | None
 ) -> tuple[IncrementResult, Step[Any]]:
     """The backend's answer ``res`` made the QP's exact solution: the sparse active-set solve of
     the exact check (``active_set.solve_sparse``, formulations/increment-qp.md sec. 8) started from
