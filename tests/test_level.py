@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+import qpscale.active_set as active_set
 import qpscale.continuation as continuation
 import qpscale.level as level_module
 import qpscale.solvers as solvers
@@ -172,9 +173,9 @@ def test_other_plane_update_fires_when_the_first_attempt_fails_and_keeps_the_sta
 
 def test_stall_tighten_fires_when_the_steps_stall_on_solver_noise_and_keeps_the_state(level, monkeypatch):
     # Answers accurate to 5e-10 (they pass the 1e-9 check) move dq by ~1e-9 at random: with a step
-    # test of 1e-10 the level stalls on that noise, the noisy answers of its remaining QPs are
-    # made exact by the sparse active-set solve (the backend still adds its noise), and it
-    # converges to the state the ordinary level reaches.
+    # test of 1e-10 the level stalls on that noise, the noisy answers of its next QPs are made
+    # exact by the sparse active-set solve (the backend still adds its noise), and it converges
+    # to the state the ordinary level reaches.
     args, clean = level
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(noise=5e-10))
     out = PunctureLevel(*args, replace(CLARABEL, step_tol=1e-10)).solve()
@@ -191,15 +192,13 @@ def test_stall_tighten_that_cannot_make_an_answer_exact_is_recorded_and_no_state
 ):
     # The same stall with an exact solve that does not converge: the level goes on with the noisy
     # answers, records why, and ends "not converged" with its status (never a state).
-    import qpscale.active_set
-
     args, _ = level
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(noise=5e-10))
 
     def no_exact(qp, x0, z0, y0, **kw):
-        return qpscale.active_set.SparseSolution(x0, z0, y0, False, "outer iteration limit 20", 20, 0, 0)
+        return active_set.SparseSolution(x0, z0, y0, False, "outer iteration limit 20", 20, 0, 0)
 
-    monkeypatch.setattr(qpscale.active_set, "solve_sparse", no_exact)
+    monkeypatch.setattr(active_set, "solve_sparse", no_exact)
     out = PunctureLevel(*args, replace(CLARABEL, step_tol=1e-10)).solve()
     details = [r.detail for r in out.rescues if r.rescue == "stall_tighten"]
     assert "exact solve not reached" in details
@@ -212,8 +211,6 @@ def test_stall_tighten_ends_the_exact_answers_of_a_level_they_do_not_converge(le
     # still stalls, so after STALL_WINDOW exact answers the stall is taken as no noise (a cycle of
     # the iteration, which exact answers repeat) and they end, recorded; the level fails with its
     # status.
-    import qpscale.active_set
-
     args, _ = level
     faults = Faults(noise=5e-10)
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
@@ -221,9 +218,9 @@ def test_stall_tighten_ends_the_exact_answers_of_a_level_they_do_not_converge(le
 
     def echo(qp, x0, z0, y0, **kw):
         exact_calls.append(1)
-        return qpscale.active_set.SparseSolution(x0, z0, y0, True, "converged", 1, 1, 1)
+        return active_set.SparseSolution(x0, z0, y0, True, "converged", 1, 1, 1)
 
-    monkeypatch.setattr(qpscale.active_set, "solve_sparse", echo)
+    monkeypatch.setattr(active_set, "solve_sparse", echo)
     out = PunctureLevel(*args, replace(CLARABEL, step_tol=1e-10)).solve()
     details = [r.detail for r in out.rescues if r.rescue == "stall_tighten"]
     assert "not noise: exact answers ended" in details
@@ -287,7 +284,7 @@ def test_flexure_qp_retry_fires_on_a_near_miss_and_keeps_the_state(plate):
 def test_flexure_stall_tighten_fires_on_solver_noise_and_keeps_the_state(plate):
     # Answers accurate to 5e-10 (they pass the 1e-9 check) move z by ~3e-9 at random through the
     # soft membrane, above the step test of 1e-9 L: the position stalls on that noise, the answers
-    # of its remaining QPs are made exact and it converges to the clean state.
+    # of its next QPs are made exact and it converges to the clean state.
     model, w, clean = plate
     out = _same_position(model, w, clean, noise=5e-10)
     assert [r.rescue for r in out.rescues] == ["stall_tighten"]
