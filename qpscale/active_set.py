@@ -20,9 +20,12 @@ The caller certifies the answer with its own residuals (``certify.solve_exact``)
 
 from __future__ import annotations
 
+import hashlib
+import threading
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 
 from .qp import IncrementQP
@@ -50,6 +53,12 @@ REFINE = 3
 #: Iteration limits: outer (multiplier) updates and Newton steps per inner minimisation.
 MAX_OUTER = 1000
 MAX_NEWTON = 100
+#: The KKT systems (17) are solved in the contact space (``_ContactKKT``) when ``P`` is a dense
+#: leading block of at least CONTACT_MIN_BLOCK unknowns, at least CONTACT_MIN_DENSITY full, beside a
+#: diagonal (the flexure QP: the condensed membrane S and the planes' weights, membrane.md eq. (13));
+#: a sparse LDL' of such a block costs O(k^3) per active set, the contact space O(|S|^3).
+CONTACT_MIN_BLOCK = 200
+CONTACT_MIN_DENSITY = 0.25
 
 
 @dataclass(frozen=True)
@@ -98,6 +107,109 @@ class _KKT:
         for _ in range(REFINE):
             sol = sol + self.solver.solve(rhs - self.K @ sol)
         return sol
+
+
+def dense_block(P: sp.spmatrix) -> int:
+    """The size ``k`` of the leading block of ``P`` that holds every off-diagonal entry: ``P`` is
+    ``blockdiag(P[:k, :k], diagonal)``.
+
+    >>> P = sp.block_diag([np.array([[2.0, 1.0], [1.0, 2.0]]), sp.identity(3)])
+    >>> dense_block(P)
+    2
+    """
+    C = sp.coo_matrix(P)
+    off = C.row != C.col
+    return int(max(C.row[off].max(initial=-1), C.col[off].max(initial=-1)) + 1)
+
+
+# The inverse of the last dense block met, by the hash of its entries: the flexure QPs of one
+# curve share the condensed membrane S (membrane.md sec. 5), so it is inverted once per curve.
+_INVERSE: dict[str, np.ndarray] = {}
+_INVERSE_LOCK = threading.Lock()
+
+
+def _block_inverse(B: np.ndarray) -> np.ndarray:
+    """``B^-1`` of the symmetric positive definite ``B`` (Cholesky), the last one kept for reuse.
+
+    Raises RuntimeError (as the sparse factorisation does) when ``B`` is not positive definite."""
+    key = hashlib.blake2b(np.ascontiguousarray(B).tobytes(), digest_size=16).hexdigest()
+    with _INVERSE_LOCK:
+        if key in _INVERSE:
+            return _INVERSE[key]
+    try:
+        factor = sla.cho_factor(B, lower=True, check_finite=False)
+    except np.linalg.LinAlgError as exc:
+        raise RuntimeError(f"dense block not positive definite: {exc}") from exc
+    inv = sla.cho_solve(factor, np.eye(len(B)), check_finite=False)
+    inv = 0.5 * (inv + inv.T)
+    with _INVERSE_LOCK:
+        _INVERSE.clear()
+        _INVERSE[key] = inv
+    return inv
+
+
+class _ContactKKT:
+    """The KKT matrix (17) of an active set ``S`` solved in the contact space (formulations/
+    increment-qp.md sec. 8, "In the contact space"), for ``P = blockdiag(B, D)`` with ``B`` dense
+    and ``D`` diagonal: ``(C_S P^-1 C_S' + delta I) mu = C_S P^-1 r1 - r2``, then
+    ``x = P^-1 (r1 - C_S' mu)``.  ``P^-1`` (``B^-1`` kept across QPs that share ``B``) and
+    ``H = C P^-1 C'`` are formed once per QP, so an active set costs one dense Cholesky of
+    ``|S|`` rows; refinement against (17) itself, until its residual is at rounding."""
+
+    def __init__(self, P: sp.csc_matrix, C: sp.csr_matrix, delta: float, k: int) -> None:
+        self.P, self.C, self.delta, self.k = P, C, delta, k
+        self.key: tuple[bytes, float] | None = None
+        self.count = 0
+        self.B_inv = _block_inverse(sp.csc_matrix(P[:k, :k]).toarray())
+        diag = P.diagonal()[k:]
+        if np.any(diag <= 0.0):
+            raise RuntimeError("diagonal of P not positive")
+        self.d_inv = 1.0 / diag
+        Ct = sp.csc_matrix(C.T)
+        W = np.empty((P.shape[0], C.shape[0]))
+        W[:k] = np.asarray(sp.csr_matrix(Ct[:k].T) @ self.B_inv).T
+        W[k:] = Ct[k:].multiply(self.d_inv[:, None]).toarray()
+        self.H = np.asarray(C @ W)
+
+    def _p_inv(self, v: np.ndarray) -> np.ndarray:
+        return np.r_[self.B_inv @ v[: self.k], self.d_inv * v[self.k :]]
+
+    def solve(self, S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        n = self.P.shape[0]
+        key = (S.tobytes(), self.delta)
+        if key != self.key:
+            M = self.H[np.ix_(S, S)]
+            M[np.diag_indices_from(M)] += self.delta
+            try:
+                self.factor = sla.cho_factor(M, lower=True, check_finite=False)
+            except np.linalg.LinAlgError as exc:
+                raise RuntimeError(f"contact-space matrix not positive definite: {exc}") from exc
+            self.CS = self.C[S]
+            self.key = key
+            self.count += 1
+
+        def once(r: np.ndarray) -> np.ndarray:
+            mu = sla.cho_solve(self.factor, self.CS @ self._p_inv(r[:n]) - r[n:], check_finite=False)
+            return np.r_[self._p_inv(r[:n] - self.CS.T @ mu), mu]
+
+        sol = once(rhs)
+        floor = NOISE * max(float(np.abs(rhs).max(initial=0.0)), 1.0)
+        for _ in range(REFINE):
+            x, mu = sol[:n], sol[n:]
+            res = rhs - np.r_[self.P @ x + self.CS.T @ mu, self.CS @ x - self.delta * mu]
+            if np.abs(res).max(initial=0.0) <= floor:
+                break
+            sol = sol + once(res)
+        return sol
+
+
+def _kkt(P: sp.csc_matrix, C: sp.csr_matrix, delta: float) -> _KKT | _ContactKKT:
+    """The solver of the KKT systems (17): in the contact space for a large dense block beside a
+    diagonal (``CONTACT_MIN_BLOCK``, ``CONTACT_MIN_DENSITY``), else sparse LDL'."""
+    k = dense_block(P)
+    if k >= CONTACT_MIN_BLOCK and sp.csc_matrix(P[:k, :k]).nnz >= CONTACT_MIN_DENSITY * k * k:
+        return _ContactKKT(sp.csc_matrix(P), C, delta, k)
+    return _KKT(P, C, delta)
 
 
 def _line_search(alpha: float, beta: float, r: np.ndarray, a: np.ndarray, eq: int, delta: float) -> float:
@@ -179,7 +291,10 @@ def solve_sparse(
         lam[p:] = np.maximum(z0, 0.0)
     final_delta = delta
     delta = max(delta0, final_delta)
-    kkt = _KKT(P, C, delta)
+    try:
+        kkt = _kkt(P, C, delta)
+    except RuntimeError as exc:
+        return SparseSolution(x, lam[p:], lam[:p], False, f"factorisation: {exc}", 0, 0, 0)
     newton = 0
     prev_set: bytes | None = None
     converged = False
