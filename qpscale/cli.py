@@ -60,7 +60,7 @@ RANGES: dict[str, str] = {
     "--rings-tol": "(0, 0.5] (default 0.005), with --rings auto",
     "--interaction": "{full, substrate, contact}",
     "--coupling-factor": "[0, 1]",
-    "--solver": "an installed backend (clarabel, piqp, osqp, cvxpy, qpsolvers:<name>) or penalty",
+    "--solver": "an installed backend (clarabel, piqp, osqp, cvxpy, active-set, qpsolvers:<name>) or penalty",
     "--accuracy": "{high, mid, low} or a number in [1e-12, 0.01]",
     "--phi-c": "(0, 60] deg",
     "--nu": "[0, 0.5]",

@@ -24,7 +24,7 @@ from . import active_set
 from .contact import ContactSet
 from .errors import SolverFailure
 from .events import Rescue
-from .qp import IncrementQP, IncrementResult, resolve_tolerance
+from .qp import IncrementQP, IncrementResult, WarmStart, resolve_tolerance
 from .solvers import solve_qp
 
 # A load level whose step has not halved over STALL_WINDOW iterations while below STALL_BAND is
@@ -308,18 +308,24 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
 
 
 def qp_step(
-    qp: IncrementQP, solver: str, accuracy: str | float, tightened: bool, increment: int | None
+    qp: IncrementQP,
+    solver: str,
+    accuracy: str | float,
+    tightened: bool,
+    increment: int | None,
+    warm_start: IncrementResult | WarmStart | None = None,
 ) -> tuple[IncrementResult | None, Step[Any]]:
     """``solve_qp`` as a level's solve: the answer if it passed its check, and the step so far.
 
-    ``tightened``: the answer made the QP's exact solution (``_exact``).  The step carries
+    ``tightened``: the answer made the QP's exact solution (``_exact``).  ``warm_start``: a start
+    for a backend that can use one (``solve_qp``).  The step carries
     the solve's time and, when the answer came only on ``solve_qp``'s own retry, its first
     status; without an answer (None), the failure to report.  ``solve_qp`` runs without raising
     (``check=False``, the reason of a rejection in ``extras["detail"]``); a backend that raises
     (bad data, an exception inside it) is a rejected answer too.
     """
     try:
-        res = solve_qp(qp, solver=solver, accuracy=accuracy, check=False)
+        res = solve_qp(qp, solver=solver, accuracy=accuracy, check=False, warm_start=warm_start)
     except SolverFailure as exc:
         return None, Step(failure=SolverFailure(solver, exc.status, increment, exc.detail))
     retried = str(res.extras.get("first_status")) if res.extras.get("retried") else None

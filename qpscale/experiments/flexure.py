@@ -32,7 +32,7 @@ from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_
 from ..increment import PLANE_PROX, PlaneDamping, _pinned_only, pressed_rows
 from ..level import LevelControls, LevelOutcome, LevelStatus, Progress, Step, qp_step
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
-from ..qp import IncrementQP
+from ..qp import IncrementQP, WarmStart
 from ..solvers import DEFAULT_SOLVER
 from ..tiling import Design, Patch, build_patch
 from ..units import compliance_star
@@ -704,6 +704,8 @@ class _FlexureLevel:
         self.controls = LevelControls(setup.solver, w, inc, STEP_TOL, PENETRATION_TOL, MAX_ITER)
         self.history: list[tuple[sp.csr_matrix, Array, ContactSet | None]] = []
         self.pressed: frozenset = frozenset()  # keys of the planes the last QP's rows pressed
+        # the last answer, its multipliers by row key and its DOFs: the next QP's warm start
+        self.last: tuple[dict[Any, float], Array] | None = None
 
     def linearise(self, z: Array, rows: ContactSet | None, refresh: float | None) -> _Linearised:
         Gp, hp, _ = _plate_rows(self.model, z, self.z_plate)
@@ -726,10 +728,12 @@ class _FlexureLevel:
     def solve(self, lin: _Linearised, tightened: bool) -> Step[FlexureState]:
         z, qp, n_plate, cs, merged = lin
         c = self.controls
-        res, step = qp_step(qp, c.solver, ACCURACY, tightened, c.increment)
+        keys = self._row_keys(n_plate, merged)
+        res, step = qp_step(qp, c.solver, ACCURACY, tightened, c.increment, self._warm_start(qp, keys))
         if res is None:
             return step
         x, zs = np.asarray(res.x), np.asarray(res.z)
+        self.last = (dict(zip(keys, zs.tolist())), x[: len(z)])
         n, lam = len(z), zs[n_plate + len(self.model.support_idx) :]
         swing = 0.0
         if cs is not None and cs.planes is not None and cs.planes.count:
@@ -742,6 +746,31 @@ class _FlexureLevel:
         answer = FlexureState(self.w, float(np.sum(zs[:n_plate])), z, merged, lam, 0, 0.0)
         labels = _set_keys(merged, self.model.setup.formulation)
         return replace(step, answer=answer, dx=x[:n] - z, rows=cs, labels=labels, swing=swing)
+
+    def _row_keys(self, n_plate: int, rows: ContactSet | None) -> list[Any]:
+        """The identity of each row of QP (13): plate and support rows by position (fixed within
+        a position), contact rows by their label and its count so far (a plane's row names the
+        pair, the plane and the vertex, so its count is 0; not ``_row_keys``, whose point moves
+        with the scales: it matched 244 of 879 rows between the first two QPs of a slanted
+        triangle array)."""
+        plate = [("plate", i) for i in range(n_plate)]
+        support = [("support", i) for i in range(len(self.model.support_idx))]
+        seen: dict[str, int] = {}
+        contact = []
+        for label in rows.labels if rows is not None else ():
+            contact.append((label, seen.get(label, 0)))
+            seen[label] = seen.get(label, 0) + 1
+        return plate + support + contact
+
+    def _warm_start(self, qp: IncrementQP, keys: list[Any]) -> WarmStart | None:
+        """The last answer carried to ``qp``'s rows: multipliers by row key (0 for a new row), the
+        DOFs as they were and the planes' unknowns at 0 (their increments from the planes the last
+        answer moved); None for the first QP."""
+        if self.last is None:
+            return None
+        z_of, dofs = self.last
+        z0 = np.array([z_of.get(k, 0.0) for k in keys])
+        return WarmStart(np.r_[dofs, np.zeros(qp.n - len(dofs))], z0, np.zeros(0))
 
     def penetration(self, z: Array) -> float:
         return _exact_penetration(self.model, z, self.z_plate)

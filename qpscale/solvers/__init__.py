@@ -2,8 +2,9 @@
 
 Backends are imported when first used: a missing optional package removes its keys from the
 registry instead of breaking ``import qpscale``, and a run imports only the backend it calls.
-Keys: ``"clarabel"``, ``"piqp"``, ``"osqp"``, ``"cvxpy"`` and
-``"qpsolvers:<name>"`` for every solver qpsolvers reports installed.
+Keys: ``"clarabel"``, ``"piqp"``, ``"osqp"``, ``"cvxpy"``, ``"active-set"`` (the package's own
+exact method, ``qpscale.active_set``) and ``"qpsolvers:<name>"`` for every solver qpsolvers reports
+installed.
 """
 
 from __future__ import annotations
@@ -64,7 +65,9 @@ class _Registry(MutableMapping[str, Backend]):
     Assigning a key (tests inject faulty backends that way) overrides it.
     """
 
-    DIRECT = ("clarabel", "piqp", "osqp", "cvxpy")
+    DIRECT = ("clarabel", "piqp", "osqp", "cvxpy", "active-set")
+    #: Backends of the package itself: always installed (no third-party package to look for).
+    OWN = ("active-set",)
 
     def __init__(self) -> None:
         self._loaded: dict[str, Backend] = {}
@@ -80,7 +83,7 @@ class _Registry(MutableMapping[str, Backend]):
     def _known(self, key: str) -> bool:
         if key in self._removed:
             return False
-        if key in self._loaded or (key in self.DIRECT and _installed(key)):
+        if key in self._loaded or key in self.OWN or (key in self.DIRECT and _installed(key)):
             return True
         return key.startswith("qpsolvers:") and key in self._qpsolvers_names()
 
@@ -99,7 +102,7 @@ class _Registry(MutableMapping[str, Backend]):
             if qps is not None:
                 backend = lambda qp, opts, ws: qps.solve(qp, name, opts, ws)  # noqa: E731
         else:
-            mod = _load(f"{key}_")
+            mod = _load(f"{key.replace('-', '_')}_")
             backend = mod.solve if mod is not None else None
         if backend is None:
             self._removed.add(key)
