@@ -134,11 +134,19 @@ def test_an_infeasible_qp_is_not_certified(G, h, A, b):
 
 
 def test_a_solve_stopped_early_is_not_certified(default_final, monkeypatch):
-    # One outer step cannot see the rows settle: the solve stops at its iteration limit (from
-    # PIQP's answer, then from zero), and the check says unverified, with no exact number.
+    # Without PIQP's answer the solve starts from zero at the soft first delta (0.1), where one
+    # outer step cannot stop: it ends at its iteration limit, and the check says unverified, with
+    # no exact number.  (From PIQP's answer one outer step at the final delta can already be
+    # stationary to the stopping tolerance, and then it stops there, converged.)
+    from qpscale import solvers
+    from qpscale.errors import SolverFailure
+
+    def no_guess(*args, **kwargs):
+        raise SolverFailure("piqp", "not run")
+
     qp, F, n_dof = default_final
     monkeypatch.setattr(active_set, "MAX_OUTER", 1)
-    monkeypatch.setattr(certify, "WARM_OUTER", 1)  # the start from PIQP's answer too
+    monkeypatch.setattr(solvers, "solve_qp", no_guess)
     check = check_force(qp, F, n_dof, "sparse")
     assert check.status == "unverified" and check.detail == "sparse active set: outer iteration limit 1"
     assert np.isnan(check.F_exact).all()
@@ -201,3 +209,24 @@ def test_a_failed_factorisation_is_a_status_not_an_exception(default_final, monk
     check = check_force(qp, F, n_dof, "sparse")
     assert check.status == "unverified" and "factorisation" in check.detail
     assert np.isnan(check.F_exact).all()
+
+
+def test_rows_at_contact_with_no_force_do_not_keep_the_solve_going():
+    # 30 rows through the unconstrained minimiser of a strictly convex QP: at the answer every row
+    # is at contact and carries no force (degenerate complementarity), so rounding moves rows in
+    # and out of the set that carries force, which then never repeats.  The solve stops because
+    # its point is stationary to the tolerance (before, it ran to its 1000-step limit with
+    # residuals at 1e-14; the same on flexure QPs of slanted arrays).  The answer is the
+    # minimiser itself, to rounding over lambda_min(P) >= 0.1.
+    rng = np.random.default_rng(0)
+    n = 40
+    M = rng.standard_normal((n, n))
+    P = M @ M.T / n + 0.1 * np.eye(n)
+    q = rng.standard_normal(n)
+    x_free = np.linalg.solve(P, -q)
+    G = rng.standard_normal((30, n))
+    qp = IncrementQP(P=sp.csc_matrix(P), q=q, G=sp.csc_matrix(G), h=G @ x_free)
+    s = active_set.solve_sparse(qp)
+    assert s.converged and s.outer < 20, (s.status, s.outer)
+    assert max(qp.residuals(s.x, s.z, s.y).values()) <= 1e-12
+    assert np.abs(s.x - x_free).max() <= 1e-12

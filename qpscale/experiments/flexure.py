@@ -728,7 +728,7 @@ class _FlexureLevel:
     def solve(self, lin: _Linearised, tightened: bool) -> Step[FlexureState]:
         z, qp, n_plate, cs, merged = lin
         c = self.controls
-        keys = self._row_keys(n_plate, merged)
+        keys = self._warm_keys(n_plate, merged)
         res, step = qp_step(qp, c.solver, ACCURACY, tightened, c.increment, self._warm_start(qp, keys))
         if res is None:
             return step
@@ -747,7 +747,7 @@ class _FlexureLevel:
         labels = _set_keys(merged, self.model.setup.formulation)
         return replace(step, answer=answer, dx=x[:n] - z, rows=cs, labels=labels, swing=swing)
 
-    def _row_keys(self, n_plate: int, rows: ContactSet | None) -> list[Any]:
+    def _warm_keys(self, n_plate: int, rows: ContactSet | None) -> list[Any]:
         """The identity of each row of QP (13): plate and support rows by position (fixed within
         a position), contact rows by their label and its count so far (a plane's row names the
         pair, the plane and the vertex, so its count is 0; not ``_row_keys``, whose point moves

@@ -38,8 +38,9 @@ def _warm(qp: IncrementQP, warm_start: Any) -> tuple[np.ndarray, np.ndarray, np.
 
 
 def solve(qp: IncrementQP, options: dict[str, Any], warm_start: Any = None) -> IncrementResult:
-    """Solve ``qp`` by ``active_set.solve_sparse``; ``options["tol"]`` is its stopping tolerance
-    (L), ``warm_start`` a previous answer or a ``WarmStart`` (used when its shape fits)."""
+    """Solve ``qp`` by ``active_set.solve_sparse``, stopping only at a point stationary to
+    ``options["tol"]`` (its stopping tolerance, also on violation and open contact); ``warm_start``
+    a previous answer or a ``WarmStart`` (used when its shape fits)."""
     tol = float(options.get("tol", active_set.STOP_TOL))
     t0 = time.perf_counter()
     start = _warm(qp, warm_start)
@@ -47,13 +48,21 @@ def solve(qp: IncrementQP, options: dict[str, Any], warm_start: Any = None) -> I
     if start is not None:
         x, z, y = start
         s = active_set.solve_sparse(
-            qp, x, z, y, working=np.flatnonzero(z > 0), delta0=active_set.DELTA, tol=tol, max_outer=WARM_OUTER
+            qp,
+            x,
+            z,
+            y,
+            working=np.flatnonzero(z > 0),
+            delta0=active_set.DELTA,
+            tol=tol,
+            max_outer=WARM_OUTER,
+            stationary=True,
         )
         if not s.converged:
             s = None
     warm_used = s is not None
     if s is None:
-        s = active_set.solve_sparse(qp, tol=tol)
+        s = active_set.solve_sparse(qp, tol=tol, stationary=True)
     t1 = time.perf_counter()
     return candidate_result(
         qp,
