@@ -50,10 +50,12 @@ DELTA0 = 1e-1
 DELTA_RATE = 0.1
 #: Refinement steps of each KKT solve against its own (regularised) matrix.
 REFINE = 3
-#: Iteration limits: outer (multiplier) updates and Newton steps per inner minimisation (a
-#: slanted dart array's flexure QP, 757 unknowns and 1,302 rows, needed 120 in one inner loop).
+#: Iteration limits: outer (multiplier) updates and Newton steps per inner minimisation; with
+#: ``stationary`` (the backend) STATIONARY_NEWTON (a slanted dart array's flexure QP, 757 unknowns
+#: and 1,302 rows, needed 120 in one inner loop).
 MAX_OUTER = 1000
-MAX_NEWTON = 300
+MAX_NEWTON = 100
+STATIONARY_NEWTON = 300
 #: The KKT systems (17) are solved in the contact space (``_ContactKKT``) when ``P`` is a dense
 #: leading block of at least CONTACT_MIN_BLOCK unknowns, at least CONTACT_MIN_DENSITY full, beside a
 #: diagonal (the flexure QP: the condensed membrane S and the planes' weights, membrane.md eq. (13));
@@ -262,9 +264,12 @@ def solve_sparse(
     minimisations (module docstring), from ``(x0, z0, y0)`` (default zero).
 
     ``max_outer``: the outer steps allowed (default ``MAX_OUTER``).
-    ``stationary``: stop only at a point stationary to ``tol`` (``|Px + q + C'lam| <= tol``), not
-    already when the rows carrying force repeat (the backend, whose answer must pass the
-    residual check; the exact check certifies its answer itself).
+    ``stationary``: the backend's stop (its answer must pass the residual check): at a point
+    stationary to ``tol`` (``|Px + q + C'lam| <= tol``) whether or not the rows carrying force
+    repeat, and at the inner cap (``STATIONARY_NEWTON``) only if the Newton point of the piece
+    reached fails that test.  Without it (the exact check, which certifies its answer itself, and
+    the stall window's exact answers): when the rows carrying force repeat, and at the inner cap
+    ``MAX_NEWTON``.
     ``working``: a guess of the inequality rows in contact; the first Newton step solves the KKT
     system of these rows (and the equality rows) instead of those the start point selects.
     Stops when an outer step leaves the rows carrying force unchanged, moves no coordinate of
@@ -329,7 +334,7 @@ def solve_sparse(
             S = bracket(x)[1]
         forced = outer == 1 and working is not None
         capped = False
-        for _ in range(MAX_NEWTON):
+        for _ in range(STATIONARY_NEWTON if stationary else MAX_NEWTON):
             try:
                 sol = kkt.solve(S, np.r_[-q, d[S] - delta * lam[S]])
             except RuntimeError as exc:  # qdldl: a pivot of the wrong sign (rounding)
@@ -356,6 +361,9 @@ def solve_sparse(
                 x = x + t * dx
             S = bracket(x)[1]
         else:
+            if not stationary:
+                status = f"Newton iteration limit {MAX_NEWTON}"
+                break
             # At the cap: the Newton point of the piece x is on, whose multipliers the stop test
             # reads.  The cap ends the solve unless that point passes the test (pieces whose
             # brackets differ by rounding can be visited in turn with x already at the answer).
@@ -382,15 +390,17 @@ def solve_sparse(
         viol = max(np.abs(A @ x - b).max(initial=0.0), np.maximum(-slack, 0.0).max(initial=0.0))
         gap = np.maximum(slack[carrying], 0.0).max(initial=0.0)
         key = carrying.tobytes()
-        # settled: the rows carrying force repeat, or the point is already stationary to tol
-        # (a row at zero force that enters and leaves the set by rounding never repeats it)
-        balanced = np.abs(P @ x + q + C.T @ lam).max(initial=0.0) <= tol
-        settled = balanced or (key == prev_set and not stationary)
+        # settled: the point is stationary to tol (the backend: a row at zero force that enters
+        # and leaves the set by rounding never lets the set repeat), or the set repeats
+        if stationary:
+            settled = bool(np.abs(P @ x + q + C.T @ lam).max(initial=0.0) <= tol)
+        else:
+            settled = key == prev_set
         if delta == final_delta and settled and viol <= tol and gap <= tol:
             status, converged = "converged", True
             break
         if capped:
-            status = f"Newton iteration limit {MAX_NEWTON}"
+            status = f"Newton iteration limit {STATIONARY_NEWTON}"
             break
         prev_set = key
         if delta > final_delta:  # the next inner problem is stiffer: new KKT matrices

@@ -134,19 +134,11 @@ def test_an_infeasible_qp_is_not_certified(G, h, A, b):
 
 
 def test_a_solve_stopped_early_is_not_certified(default_final, monkeypatch):
-    # Without PIQP's answer the solve starts from zero at the soft first delta (0.1), where one
-    # outer step cannot stop: it ends at its iteration limit, and the check says unverified, with
-    # no exact number.  (From PIQP's answer one outer step at the final delta can already be
-    # stationary to the stopping tolerance, and then it stops there, converged.)
-    from qpscale import solvers
-    from qpscale.errors import SolverFailure
-
-    def no_guess(*args, **kwargs):
-        raise SolverFailure("piqp", "not run")
-
+    # One outer step cannot see the rows settle: the solve stops at its iteration limit (from
+    # PIQP's answer, then from zero), and the check says unverified, with no exact number.
     qp, F, n_dof = default_final
     monkeypatch.setattr(active_set, "MAX_OUTER", 1)
-    monkeypatch.setattr(solvers, "solve_qp", no_guess)
+    monkeypatch.setattr(certify, "WARM_OUTER", 1)  # the start from PIQP's answer too
     check = check_force(qp, F, n_dof, "sparse")
     assert check.status == "unverified" and check.detail == "sparse active set: outer iteration limit 1"
     assert np.isnan(check.F_exact).all()
@@ -211,13 +203,14 @@ def test_a_failed_factorisation_is_a_status_not_an_exception(default_final, monk
     assert np.isnan(check.F_exact).all()
 
 
-def test_rows_at_contact_with_no_force_do_not_keep_the_solve_going():
+def test_rows_at_contact_with_no_force_stop_the_backend_at_a_stationary_point():
     # 30 rows through the unconstrained minimiser of a strictly convex QP: at the answer every row
     # is at contact and carries no force (degenerate complementarity), so rounding moves rows in
-    # and out of the set that carries force, which then never repeats.  The solve stops because
-    # its point is stationary to the tolerance (before, it ran to its 1000-step limit with
-    # residuals at 1e-14; the same on flexure QPs of slanted arrays).  The answer is the
-    # minimiser itself, to rounding over lambda_min(P) >= 0.1.
+    # and out of the set that carries force, which then never repeats.  With ``stationary`` (the
+    # backend's stop) the solve stops because its point is stationary to the tolerance; with the
+    # exact check's stop (the set must repeat) it runs to its limit with residuals at 1e-14, as
+    # it did on a flexure QP of a slanted square array.  The answer is the minimiser itself, to
+    # rounding over lambda_min(P) >= 0.1.
     rng = np.random.default_rng(0)
     n = 40
     M = rng.standard_normal((n, n))
@@ -226,7 +219,10 @@ def test_rows_at_contact_with_no_force_do_not_keep_the_solve_going():
     x_free = np.linalg.solve(P, -q)
     G = rng.standard_normal((30, n))
     qp = IncrementQP(P=sp.csc_matrix(P), q=q, G=sp.csc_matrix(G), h=G @ x_free)
-    s = active_set.solve_sparse(qp)
+    s = active_set.solve_sparse(qp, stationary=True)
     assert s.converged and s.outer < 20, (s.status, s.outer)
     assert max(qp.residuals(s.x, s.z, s.y).values()) <= 1e-12
     assert np.abs(s.x - x_free).max() <= 1e-12
+    repeated = active_set.solve_sparse(qp, max_outer=50)
+    assert not repeated.converged and repeated.status == "outer iteration limit 50"
+    assert max(qp.residuals(repeated.x, repeated.z, repeated.y).values()) <= 1e-12
