@@ -349,9 +349,9 @@ def backend_options(solver: str, tol: float) -> dict[str, Any]:
         return _qpsolvers_opts(solver.split(":", 1)[1], tol)
     if solver == "active-set":
         # Exact once its rows settle: it stops when no row is violated, nor one carrying force
-        # open, by more than t, and its rows carrying force repeat or its point is stationary to
-        # t (formulations sec. 8).  A tenth of the target, as every backend aims, not the exact
-        # check's 1e-12: a weak direction of P (a plane's 1e-6) leaves rounding of ~1e-12 L.
+        # open, by more than t, and its point is stationary to t (formulations sec. 8).  A tenth
+        # of the target, as every backend aims, not the exact check's 1e-12: a weak direction of
+        # P (a plane's 1e-6) leaves rounding of ~1e-12 L.
         return {"tol": t}
     raise InvalidDesign("solver", solver, "a known backend key")
 

@@ -1,13 +1,14 @@
 """The package's own exact QP method as a backend: formulations/increment-qp.md sec. 3.5 and 8.
 
 ``active_set.solve_sparse``: the proximal method of multipliers whose inner problems are minimised
-exactly by semismooth Newton steps, so the answer is the QP's solution up to rounding once its set
-of rows in contact settles (no interior-point tolerance).  Its KKT systems are solved in the
-contact space when ``P`` is a large dense block beside a diagonal (the flexure QP), else by a
-sparse LDL'.  A warm start (the last answer of a QP of the same shape) starts it at the final
-delta from that answer's multipliers and rows in contact; a start that does not converge in
-``WARM_OUTER`` outer steps is dropped for the start from zero, whose soft first steps converge
-from anywhere (sec. 8, "Start").
+exactly by semismooth Newton steps, asked to stop at a point stationary, feasible and
+complementary to a tenth of the target (``stationary=True``), with no interior-point tolerance
+left in the unknowns.  Its KKT systems are solved in the contact space when ``P`` is a large dense
+block beside a diagonal (the flexure QP), else by a sparse LDL'.  A start of the QP's shape (an
+earlier answer, or a ``qp.WarmStart`` carried to the QP's rows by their labels) is used at the
+final delta from its multipliers, its rows carrying force the first working set; one that does
+not converge in ``WARM_OUTER`` outer steps is dropped for the start from zero, whose soft first
+steps converge from anywhere (sec. 8, "Start").
 """
 
 from __future__ import annotations
