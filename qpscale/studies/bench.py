@@ -163,6 +163,9 @@ def default_methods(quick: bool = True) -> list[Method]:
     extra = _qpsolvers_wanted(quick)
     out += [Method(f"qpsolvers:{n}", f"qpsolvers:{n}") for n in extra if f"qpsolvers:{n}" in have]
     if not quick:
+        # the package's own exact method (formulations/increment-qp.md sec. 3.5): 10x PIQP's time
+        # on the default curve, so not in the quick bench's budget
+        out += [Method("active-set", "active-set")]
         out += [Method("osqp-feature-mid", "osqp", "mid", formulation="feature")]
         out += [
             Method(f"penalty-k{k:.0e}", "penalty", penalty=PenaltySettings(k_pen=k))
