@@ -8,14 +8,17 @@ proximal method of multipliers: for fixed multipliers ``(y_, z_)`` the piecewise
 
 is minimised exactly (semismooth Newton steps: full where they lower phi, else with an exact line
 search; each step is the KKT system of the rows where the bracket is positive, quasi-definite, so
-a sparse LDL' factorisation without pivoting exists whatever the rows' rank), then
+a sparse LDL' factorisation without pivoting exists whatever the rows' rank; for a large dense
+block of ``P`` beside a diagonal, the flexure QP's, it is solved in the contact space through
+``H = C P^-1 C'``, sec. 8 "In the contact space"), then
 ``y_ += (Ax - b)/delta`` and ``z_ = [z_ + (Gx - h)/delta]_+`` (read from the KKT solve).  delta
 starts soft and falls to DELTA; the loop stops where the certificate will pass with a margin.
 With the active set fixed, an outer step is one step of iterative refinement of the regularised
 KKT system towards the unregularised one, so the answer is exact up to rounding once the set
 settles, like a primal active-set method's, but dependent rows (a hinged plane) only leave the
 multipliers non-unique, never the factorisation singular.
-The caller certifies the answer with its own residuals (``certify.solve_exact``).
+The caller certifies the answer with its own residuals (``certify.solve_exact``), or, as the
+``active-set`` backend (``stationary=True``), the solve stops only at a stationary point.
 """
 
 from __future__ import annotations
@@ -390,8 +393,9 @@ def solve_sparse(
         viol = max(np.abs(A @ x - b).max(initial=0.0), np.maximum(-slack, 0.0).max(initial=0.0))
         gap = np.maximum(slack[carrying], 0.0).max(initial=0.0)
         key = carrying.tobytes()
-        # settled: the point is stationary to tol (the backend: a row at zero force that enters
-        # and leaves the set by rounding never lets the set repeat), or the set repeats
+        # settled: for the backend the point is stationary to tol (a row at zero force that
+        # enters and leaves the set by rounding never lets the set repeat); for the exact check
+        # and the stall window the set repeats
         if stationary:
             settled = bool(np.abs(P @ x + q + C.T @ lam).max(initial=0.0) <= tol)
         else:
