@@ -162,11 +162,12 @@ class _ContactKKT:
     ``H = C P^-1 C'`` are formed once per QP, so an active set costs one dense Cholesky of
     ``|S|`` rows; refinement against (17) itself, until its residual is at rounding."""
 
-    def __init__(self, P: sp.csc_matrix, C: sp.csr_matrix, delta: float, k: int) -> None:
+    def __init__(self, P: sp.csc_matrix, C: sp.csr_matrix, delta: float, B: np.ndarray) -> None:
+        k = len(B)
         self.P, self.C, self.delta, self.k = P, C, delta, k
         self.key: tuple[bytes, float] | None = None
         self.count = 0
-        self.B_inv = _block_inverse(sp.csc_matrix(P[:k, :k]).toarray())
+        self.B_inv = _block_inverse(B)
         diag = P.diagonal()[k:]
         if np.any(diag <= 0.0):
             raise RuntimeError("diagonal of P not positive")
@@ -213,8 +214,10 @@ def _kkt(P: sp.csc_matrix, C: sp.csr_matrix, delta: float) -> _KKT | _ContactKKT
     """The solver of the KKT systems (17): in the contact space for a large dense block beside a
     diagonal (``CONTACT_MIN_BLOCK``, ``CONTACT_MIN_DENSITY``), else sparse LDL'."""
     k = dense_block(P)
-    if k >= CONTACT_MIN_BLOCK and sp.csc_matrix(P[:k, :k]).nnz >= CONTACT_MIN_DENSITY * k * k:
-        return _ContactKKT(sp.csc_matrix(P), C, delta, k)
+    if k >= CONTACT_MIN_BLOCK:
+        B = sp.csc_matrix(P[:k, :k])
+        if B.nnz >= CONTACT_MIN_DENSITY * k * k:
+            return _ContactKKT(sp.csc_matrix(P), C, delta, B.toarray())
     return _KKT(P, C, delta)
 
 
@@ -337,7 +340,12 @@ def solve_sparse(
             S = bracket(x)[1]
         forced = outer == 1 and working is not None
         capped = False
-        for _ in range(STATIONARY_NEWTON if stationary else MAX_NEWTON):
+        # the backend's loop has one more solve: at its cap, the Newton point of the piece that x
+        # is on, whose multipliers the stop test reads (pieces whose brackets differ by rounding
+        # can be visited in turn with x already at the answer); the cap ends the solve only if
+        # that point fails the test
+        cap = STATIONARY_NEWTON if stationary else MAX_NEWTON
+        for it in range(cap + stationary):
             try:
                 sol = kkt.solve(S, np.r_[-q, d[S] - delta * lam[S]])
             except RuntimeError as exc:  # qdldl: a pivot of the wrong sign (rounding)
@@ -345,6 +353,9 @@ def solve_sparse(
                     x, lam[p:], lam[:p], False, f"factorisation: {exc}", outer, newton, kkt.count
                 )
             newton += 1
+            if it == cap:
+                capped, x = True, sol[:n]
+                break
             r_full, S_full, noise = bracket(sol[:n])
             differ = np.setxor1d(S, S_full)
             if np.all(np.abs(r_full[differ]) <= noise[differ]):
@@ -364,21 +375,8 @@ def solve_sparse(
                 x = x + t * dx
             S = bracket(x)[1]
         else:
-            if not stationary:
-                status = f"Newton iteration limit {MAX_NEWTON}"
-                break
-            # At the cap: the Newton point of the piece x is on, whose multipliers the stop test
-            # reads.  The cap ends the solve unless that point passes the test (pieces whose
-            # brackets differ by rounding can be visited in turn with x already at the answer).
-            capped = True
-            try:
-                sol = kkt.solve(S, np.r_[-q, d[S] - delta * lam[S]])
-            except RuntimeError as exc:
-                return SparseSolution(
-                    x, lam[p:], lam[:p], False, f"factorisation: {exc}", outer, newton, kkt.count
-                )
-            newton += 1
-            x = sol[:n]
+            status = f"Newton iteration limit {MAX_NEWTON}"
+            break
         # the multipliers of the minimiser: the KKT solve's (accurate), not (Cx - d)/delta + lam,
         # which multiplies the rounding of x by 1/delta
         lam = np.zeros(p + m)
