@@ -110,6 +110,42 @@ def test_condensation_matches_a_direct_solve():
     assert np.allclose(u[tie[0]], (tie_rows(tie[1], tie[2]) @ zr[:5]).reshape(-1, 3), atol=1e-14)
 
 
+@pytest.mark.parametrize("schur", ["trailing", "forward"])
+def test_schur_complement_entrywise_with_the_rigid_modes_bordered(schur):
+    # No pins: the bordered DOFs (three top nodes in full, the bottom face's u_z held) carry all six
+    # rigid modes, so S is singular and the factor's trailing block holds S + sigma I (eq. (8d)).
+    # S against the dense Schur complement entry by entry, and S times a rigid translation and a
+    # rotation about z, which must give no force.  Tolerance 1e-12 of S's largest entry (measured
+    # 1e-14): on this small mesh K_bb is 2.4 times S's scale, so the cancellation of eq. (8a) and
+    # the shift sigma lose little; a shift not taken off again would be off by sigma ~ K_bb.
+    # Both ways: the trailing block of K_g's factor (8d) and the forward solve (8a).
+    mm = small(0.45)
+    bottom, top = mm.face_nodes(False), mm.face_nodes(True)
+    T, gen_of = generalised_map(len(mm.nodes), [], np.zeros(0, dtype=int))
+    corners = top[[0, len(top) // 2, -1]]
+    retained = np.r_[node_dofs(corners), gen_of[3 * top[3:6] + 2]]
+    held = gen_of[3 * bottom + 2]
+    cond = condense(mm.K, T, retained, held, schur=schur)
+    Kg = (T.T @ mm.K @ T).toarray()
+    b, c = cond.bordered, cond.condensed
+    dense = Kg[np.ix_(b, b)] - Kg[np.ix_(b, c)] @ np.linalg.solve(Kg[np.ix_(c, c)], Kg[np.ix_(c, b)])
+    scale = np.abs(dense).max()
+    assert np.abs(cond.S_bordered - dense).max() <= 1e-12 * scale
+    xyz = np.repeat(mm.nodes, 3, axis=0)[b]
+    axis = np.tile([0, 1, 2], len(mm.nodes))[b]
+    translation = (axis == 0).astype(float)
+    rotation = np.where(axis == 0, -xyz[:, 1], np.where(axis == 1, xyz[:, 0], 0.0))
+    for mode in (translation, rotation):
+        assert np.abs(cond.S_bordered @ mode).max() <= 1e-12 * scale * np.abs(mode).max()
+
+
+def test_condense_refuses_an_unknown_schur_method():
+    mm = small(0.45)
+    T, gen_of = generalised_map(len(mm.nodes), [], node_dofs(mm.face_nodes(False)))
+    with pytest.raises(InvalidDesign, match="schur"):
+        condense(mm.K, T, gen_of[3 * mm.face_nodes(True)[:3] + 2], schur="dense")
+
+
 def test_release_is_the_condensation_with_those_dofs_retained():
     # A held DOF released into the retained set (eq. (8c), read from the bordered Schur complement)
     # against condensing again with it retained from the start; and the held DOFs' reactions
@@ -226,17 +262,11 @@ def _factor_nonzeros(A: sp.spmatrix, order: np.ndarray) -> int:
     """Nonzeros of CHOLMOD's factor of ``A`` in exactly ``order`` (its AMD comparison switched off)."""
     from qpscale.membrane import _cholmod, _lower
 
-    cvxopt, cholmod = _cholmod()
-    before = dict(cholmod.options)
-    cholmod.options["nmethods"] = 1
-    try:
-        L = _lower(A)
+    L = _lower(A)
+    with _cholmod(nmethods=1) as (cvxopt, cholmod):
         F = cholmod.symbolic(L, p=cvxopt.matrix(np.asarray(order, dtype=np.int64)), uplo="L")
         cholmod.numeric(L, F)
         return len(cholmod.getfactor(F).V)
-    finally:
-        cholmod.options.clear()
-        cholmod.options.update(before)
 
 
 def test_nested_dissection_order_of_the_condensed_dofs():
