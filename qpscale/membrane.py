@@ -563,10 +563,10 @@ def _fill_reducing_order(
 
 #: Largest K_g (generalised DOFs) whose Schur complement is read from the trailing block of its
 #: factor (``_trailing_schur``): cvxopt hands the factor out as a copy, so that read holds about
-#: 32 bytes per nonzero of L at its peak against the forward solve's 9 (membrane.md sec. 5).  The
-#: study's largest tensor mesh has 171k DOFs (116 M nonzeros, 4.3 GB at the peak); the
-#: footprint-fitted meshes of sec. 9d, 316k DOFs and more, keep the forward solve.
-TRAILING_MAX_DOFS = 250_000
+#: 32 bytes per nonzero of L at its peak against the forward solve's 9 (membrane.md sec. 5).  At
+#: this bound the default ``qpscale flexure`` keeps its peak memory: its mesh (102k DOFs) is read
+#: from the factor, its finer companion (155k, 4.5 GB that way) by the forward solve.
+TRAILING_MAX_DOFS = 120_000
 
 
 def condense(
