@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 from skfem import MeshHex
 
-from qpscale.errors import InvalidDesign
+from qpscale.errors import InvalidDesign, SolverFailure
 from qpscale.membrane import (
     MembraneMesh,
     MembraneModel,
@@ -137,6 +137,17 @@ def test_schur_complement_entrywise_with_the_rigid_modes_bordered(schur):
     rotation = np.where(axis == 0, -xyz[:, 1], np.where(axis == 1, xyz[:, 0], 0.0))
     for mode in (translation, rotation):
         assert np.abs(cond.S_bordered @ mode).max() <= 1e-12 * scale * np.abs(mode).max()
+
+
+@pytest.mark.parametrize("schur", ["trailing", "forward"])
+def test_rigid_modes_left_in_the_condensed_dofs_are_reported(schur):
+    # No pins and one retained DOF: five rigid modes live in the condensed DOFs alone, so K_cc (and
+    # K_g shifted on the bordered DOFs) is singular.  CHOLMOD meets a non-positive pivot and the
+    # condensation fails with its status instead of returning a Schur complement of round-off.
+    mm = small(0.45)
+    T, gen_of = generalised_map(len(mm.nodes), [], np.zeros(0, dtype=int))
+    with pytest.raises(SolverFailure, match="singular membrane stiffness"):
+        condense(mm.K, T, gen_of[3 * mm.face_nodes(True)[:1] + 2], schur=schur)
 
 
 def test_condense_refuses_an_unknown_schur_method():
