@@ -340,3 +340,61 @@ def test_retry_keeps_the_benchmarks_per_method_settings(monkeypatch):
     with backend_overrides({"polishing": False}):
         solve_qp(k.qp, "osqp", "high", check=False)
     assert len(calls) == 2 and calls[0]["polishing"] is False and calls[1]["polishing"] is False
+
+
+def test_piqp_dense_bounds_carry_the_rows_multipliers_by_hand():
+    # min 1/2 |x|^2 - x1  s.t.  2 x1 <= 1,  -3 x2 <= -3.  P is full, so PIQP's dense solver takes
+    # the two rows as the bounds x1 <= 0.5 and x2 >= 1 (eq. (11b)).  Stationarity in our
+    # convention: x1 - 1 + 2 z1 = 0 -> z1 = 0.25; x2 - 3 z2 = 0 -> z2 = 1/3.
+    from qpscale.solvers import piqp_
+
+    qp = IncrementQP(
+        P=sp.identity(2, format="csc"),
+        q=np.array([-1.0, 0.0]),
+        G=sp.csc_matrix([[2.0, 0.0], [0.0, -3.0]]),
+        h=np.array([1.0, -3.0]),
+    )
+    _, (rows, _, v) = piqp_.build(qp, {})
+    assert rows.tolist() == [0, 1] and v.tolist() == [2.0, -3.0]
+    r = solve_qp(qp, "piqp")
+    assert np.allclose(r.x, [0.5, 1.0], atol=1e-9, rtol=0)
+    assert np.allclose(r.z, [0.25, 1.0 / 3.0], atol=1e-9, rtol=0)
+
+
+def test_piqp_dense_path_equals_the_exact_solution():
+    # A flexure-shaped QP: a dense SPD block on 220 of 250 unknowns (fill 0.77), bounds of both
+    # signs and scales on 120 of them, one pressed bound repeated (the second copy stays a row),
+    # rows mixing the unknowns and one equality.  PIQP's dense path against the exact active-set
+    # solve (qpscale.active_set): x to 1e-8 and z to 1e-7, the repeated bound's two multipliers by
+    # their sum (their split is not unique).  PIQP stops at residuals of 1e-10, which the smallest
+    # eigenvalue of P (1e-3) turns into at most 1e-7 in x; measured 4e-10 in x and 3e-10 in z.
+    from qpscale import active_set
+    from qpscale.solvers import piqp_
+
+    rng = np.random.default_rng(3)
+    k, planes = 220, 30
+    M = rng.standard_normal((k, k))
+    P = sp.block_diag(
+        [M @ M.T / k + 0.05 * np.eye(k), sp.diags(np.geomspace(1e-3, 1.0, planes))], format="csc"
+    )
+    n = k + planes
+    scale = np.where(np.arange(120) % 2, 2.0, -0.5)
+    bounds = sp.csr_matrix((scale, (np.arange(120), np.arange(120))), shape=(120, n))
+    mixed = sp.random(40, n, density=0.05, random_state=3, format="csr")
+    G = sp.vstack([bounds, mixed, bounds[1:2]], format="csc")  # bound 1 twice
+    h = np.r_[0.01 * np.abs(scale), rng.uniform(0.0, 0.02, 40), 0.01 * abs(scale[1])]
+    A = sp.csc_matrix(rng.standard_normal((1, n)))
+    qp = IncrementQP(P, rng.standard_normal(n), G, h, A, np.array([0.1]))
+    assert qp.P.nnz >= piqp_.DENSE_FROM * n**2
+    _, (rows, _, _) = piqp_.build(qp, {})
+    assert len(rows) == 120 and 160 not in rows
+    r = solve_qp(qp, "piqp")
+    exact = active_set.solve_sparse(qp)
+    assert exact.converged, exact.status
+    assert np.abs(r.x - exact.x).max() <= 1e-8
+    single = np.r_[0, np.arange(2, 160)]
+    assert np.abs(r.z[single] - exact.z[single]).max() <= 1e-7
+    assert exact.z[1] + exact.z[160] > 1e-3  # the repeated bound is pressed
+    assert abs(r.z[1] + r.z[160] - exact.z[1] - exact.z[160]) <= 1e-7
+    active = r.z[:120] > 1e-6
+    assert (active & (scale > 0)).sum() > 10 and (active & (scale < 0)).sum() > 10
