@@ -25,7 +25,7 @@ from ..qp import IncrementQP, IncrementResult, candidate_result
 
 #: Fill of P (nonzeros / n^2) from which PIQP's dense solver is used.  Measured on captured flexure
 #: QPs (one BLAS thread, same settings and iterations): the square staggered array along y (fill
-#: 0.71, 965 unknowns) 3.2x faster, the trapezoid array along x (0.66) 2.3x, the slanted triangle
+#: 0.71, 965 unknowns) 3.0x faster, the trapezoid array along x (0.66) 2.1x, the slanted triangle
 #: array (0.28) 2.4x slower; puncture QPs are at most 0.04 full.
 DENSE_FROM = 0.5
 
