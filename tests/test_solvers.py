@@ -354,8 +354,8 @@ def test_piqp_dense_bounds_carry_the_rows_multipliers_by_hand():
         G=sp.csc_matrix([[2.0, 0.0], [0.0, -3.0]]),
         h=np.array([1.0, -3.0]),
     )
-    _, (rows, _, v) = piqp_.build(qp, {})
-    assert rows.tolist() == [0, 1] and v.tolist() == [2.0, -3.0]
+    _, layout = piqp_.build(qp, {})
+    assert layout.rows.tolist() == [0, 1] and layout.v.tolist() == [2.0, -3.0] and not len(layout.keep)
     r = solve_qp(qp, "piqp")
     assert np.allclose(r.x, [0.5, 1.0], atol=1e-9, rtol=0)
     assert np.allclose(r.z, [0.25, 1.0 / 3.0], atol=1e-9, rtol=0)
@@ -386,8 +386,8 @@ def test_piqp_dense_path_equals_the_exact_solution():
     A = sp.csc_matrix(rng.standard_normal((1, n)))
     qp = IncrementQP(P, rng.standard_normal(n), G, h, A, np.array([0.1]))
     assert qp.P.nnz >= piqp_.DENSE_FROM * n**2
-    _, (rows, _, _) = piqp_.build(qp, {})
-    assert len(rows) == 120 and 160 not in rows
+    _, layout = piqp_.build(qp, {})
+    assert len(layout.rows) == 120 and 160 not in layout.rows and 160 in layout.keep
     r = solve_qp(qp, "piqp")
     exact = active_set.solve_sparse(qp)
     assert exact.converged, exact.status

@@ -14,7 +14,7 @@ dense solver, with its rows on a single unknown given as bounds on that unknown
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import piqp
@@ -57,11 +57,21 @@ def _bounds(G: sp.csr_matrix, h: np.ndarray, n: int) -> tuple[np.ndarray, ...]:
     return rows, col, v, x_l, x_u
 
 
-def build(qp: IncrementQP, options: dict[str, Any]) -> tuple[Any, tuple[np.ndarray, ...]]:
+class _Layout(NamedTuple):
+    """Where our rows went: ``keep`` to PIQP's G, ``rows`` to bounds on the unknowns ``col`` with
+    their entries ``v`` (eq. (11b))."""
+
+    keep: np.ndarray
+    rows: np.ndarray
+    col: np.ndarray
+    v: np.ndarray
+
+
+def build(qp: IncrementQP, options: dict[str, Any]) -> tuple[Any, _Layout]:
     """Set up PIQP on ``qp``: its sparse solver (full P, A and G in CSC, no lower bounds), or its
     dense solver when ``P`` is at least ``DENSE_FROM`` full, with single-unknown rows as bounds.
 
-    Returns the solver and the rows given as bounds, their unknowns and entries (empty if none).
+    Returns the solver and where the rows went.
     """
     G, h, A, b = qp.rows()
     dense = qp.n > 0 and qp.P.nnz >= DENSE_FROM * qp.n**2
@@ -69,7 +79,6 @@ def build(qp: IncrementQP, options: dict[str, Any]) -> tuple[Any, tuple[np.ndarr
     solver.settings.verbose = False
     for key, value in options.items():
         setattr(solver.settings, key, value)
-    none = (np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0))
     if not dense:
         solver.setup(
             qp.P,
@@ -80,7 +89,8 @@ def build(qp: IncrementQP, options: dict[str, Any]) -> tuple[Any, tuple[np.ndarr
             None,
             h if qp.m_ineq else None,
         )
-        return solver, none
+        no_bounds = np.zeros(0, dtype=int)
+        return solver, _Layout(np.arange(qp.m_ineq), no_bounds, no_bounds, np.zeros(0))
     Gr = sp.csr_matrix(G)
     rows, col, v, x_l, x_u = _bounds(Gr, h, qp.n)
     keep = np.setdiff1d(np.arange(qp.m_ineq), rows)
@@ -95,14 +105,14 @@ def build(qp: IncrementQP, options: dict[str, Any]) -> tuple[Any, tuple[np.ndarr
         x_l if len(rows) else None,
         x_u if len(rows) else None,
     )
-    return solver, (rows, col, v)
+    return solver, _Layout(keep, rows, col, v)
 
 
 def solve(qp: IncrementQP, options: dict[str, Any], warm_start: Any = None) -> IncrementResult:
     """Solve ``qp`` with PIQP; ``warm_start`` is ignored (interior point, no warm start)."""
     t0 = time.perf_counter()
     try:
-        solver, (rows, col, v) = build(qp, options)
+        solver, layout = build(qp, options)
         t1 = time.perf_counter()
         status = str(solver.solve())
     except Exception as exc:  # PIQP raises plain exceptions on bad data or settings
@@ -113,13 +123,12 @@ def solve(qp: IncrementQP, options: dict[str, Any], warm_start: Any = None) -> I
     ok = status in OK_STATUS or limit
     x = np.asarray(res.x, dtype=float) if ok else None
     z = np.zeros(qp.m_ineq)
-    if qp.m_ineq > len(rows):
-        keep = np.setdiff1d(np.arange(qp.m_ineq), rows)
-        z[keep] = np.asarray(res.z_u, dtype=float) - np.asarray(res.z_l, dtype=float)
-    if len(rows):
+    if len(layout.keep):
+        z[layout.keep] = np.asarray(res.z_u, dtype=float) - np.asarray(res.z_l, dtype=float)
+    if len(layout.rows):
         # a bound's multiplier is the row's times |v|: x_j <= h/v is the row v x_j <= h over v > 0
-        z_u, z_l = np.asarray(res.z_bu, dtype=float)[col], np.asarray(res.z_bl, dtype=float)[col]
-        z[rows] = np.where(v > 0, z_u, z_l) / np.abs(v)
+        z_u, z_l = (np.asarray(w, dtype=float)[layout.col] for w in (res.z_bu, res.z_bl))
+        z[layout.rows] = np.where(layout.v > 0, z_u, z_l) / np.abs(layout.v)
     y = np.asarray(res.y, dtype=float) if qp.m_eq else np.zeros(0)
     return candidate_result(
         qp,
