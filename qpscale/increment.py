@@ -356,6 +356,23 @@ class PlaneDamping:
                 self.scale[k] = 0.25 * scale if scale > 1e-3 else 0.0
 
 
+def map_labels(cs: ContactSet | None) -> tuple:
+    """What identifies the linearised map of a level for Anderson's history (sec. 4, Acceleration).
+
+    With separating planes, the planes' keys: they are the unknowns beside the DOFs, so a new or
+    dropped plane changes the map.  A vertex that enters or leaves a plane's margin band does not:
+    its row is slack, and the QP's answer is that of the rows it had.  Restarting on every such
+    change threw away the history exactly where it was needed (a hinged plane whose swing takes a
+    far vertex in and out of the band every step, growing into a two-cycle that Anderson's secant
+    step cures).  Feature rows have no unknowns of their own: their labels.
+    """
+    if cs is None:
+        return ()
+    if cs.planes is not None:
+        return cs.planes.keys
+    return tuple(cs.labels)
+
+
 def pressed_rows(lam: np.ndarray) -> np.ndarray:
     """The rows whose multiplier counts as a force: above 1e-6 of the largest and 1e-12 (what a
     QP leaves on rows that carry nothing is of its tolerance's size)."""
@@ -537,10 +554,9 @@ class _SequentialQP:
                 self.damping.update(cs, theta, lam)
         F, residuals = float(np.asarray(res.y)[0]), dict(res.residuals or {})
         answer = Equilibrium(q, at.delta, F, cs, lam if cs is not None else np.zeros(0), 0, 0.0, residuals)
-        labels = cs.labels if cs is not None else ()
         swing = float(np.max(np.abs(theta), initial=0.0))
         return replace(
-            step, answer=answer, dx=x[: q.size].reshape(q.shape), rows=cs, labels=labels, swing=swing
+            step, answer=answer, dx=x[: q.size].reshape(q.shape), rows=cs, labels=map_labels(cs), swing=swing
         )
 
     def penetration(self, q: np.ndarray) -> float:

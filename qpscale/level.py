@@ -156,7 +156,8 @@ class Step(Generic[S]):
     rows : ContactSet or None
         The contact set to linearise at next, its separating planes moved by the step.
     labels : Hashable
-        What identifies the rows: a change restarts Anderson's history.
+        What identifies the linearised map (with separating planes, the planes' keys,
+        ``increment.map_labels``; otherwise the rows): a change restarts Anderson's history.
     seconds : float
         Time spent in the solve.
     work : int
@@ -226,8 +227,9 @@ def solve(problem: LevelProblem[L, S], start: np.ndarray, rows: ContactSet | Non
     hinge moves no DOF in the step that makes it) or once by eq. (5b), a step that swung no plane
     (``Step.swing``) and moved the DOFs by at most a tenth of the test, and then only if
     the exact penetration at ``x + dx`` is at most ``penetration_tol``, eq. (6), otherwise the
-    iteration goes on with the overlapping pairs' planes refreshed.  While the row set keeps its
-    labels the iterates are Anderson-accelerated (DOFs and planes together, ``_accelerated``).
+    iteration goes on with the overlapping pairs' planes refreshed.  While the steps keep their
+    labels (``Step.labels``) the iterates are Anderson-accelerated (DOFs and planes together,
+    ``_accelerated``).
     A level whose steps stall on solver noise (``_stalled``) is solved on with exact answers,
     once, for at most ``STALL_WINDOW`` QPs, and back at the backend's own answers if the exact
     solve does not converge (``stall_tighten``); a QP answered only on its retry is recorded

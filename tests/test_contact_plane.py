@@ -12,7 +12,8 @@ from qpscale.contact import ContactSettings, contact_forces, detect_contacts, ga
 from qpscale.contact.planes import tangent_basis
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
 from qpscale.geometry import rotation_matrices
-from qpscale.increment import PunctureLevel, SQPSettings
+from qpscale.increment import PunctureLevel, SQPSettings, assemble_increment, map_labels
+from qpscale.solvers import solve_qp
 
 PLANE = ContactSettings()
 
@@ -172,3 +173,36 @@ def test_pieces_all_beyond_the_margin_give_no_plane_whatever_is_remembered():
     apart[:, :2] = 0.5 * patch.centroids  # every gap grows by half a centre distance (>= 1 L)
     cs = detect_contacts(patch, apart, previous=fresh)
     assert cs.planes.count == 0 and len(cs.gap) == 0
+
+
+def test_slack_rows_of_the_band_leave_the_map_and_its_labels_unchanged():
+    # Anderson's history restarts when the map changes (formulations/increment.md sec. 4,
+    # "Restart on the planes"): a vertex entering or leaving a plane's margin band does not change
+    # it.  The increment QP of a converged state inside the 3x3 path, solved with every row and
+    # without the band's slack rows (gap above 1e-3 L, no force), has the same answer: dq to the
+    # QP's accuracy (KKT 1e-9 over lambda_min(K) ~ 0.1: 1e-8), the contact forces on the scales to
+    # 1e-7 (their split between a face's dependent rows is not unique, the resultants are); and
+    # the two row sets have the same map labels (the planes' keys) but different row labels.
+    setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
+    patch, K = build_model(setup)
+    load = _load_point(patch, np.array([1.0, 0.0]))
+    result = run_puncture(setup)
+    i = int(np.argmin([abs(s.delta - 0.2) for s in result.states]))
+    start, state = result.states[i - 1], result.states[i]
+    level = PunctureLevel(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=start.contacts)
+    qp, cs = level.increment_qp()
+    full = solve_qp(qp, solver="piqp")
+    slack = (cs.gap > 1e-3) & (np.asarray(full.z) < 1e-12)
+    assert 0 < slack.sum() < cs.m
+    keep = ~slack
+    fields = ("a", "b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kind", "side", "plane")
+    labels = tuple(lab for lab, k in zip(cs.labels, keep) if k)
+    fewer = replace(cs, labels=labels, **{f: getattr(cs, f)[keep] for f in fields})
+    J = gap_jacobian(fewer, patch, start.q)
+    part = solve_qp(assemble_increment(K, start.q, load, state.delta, fewer, J), solver="piqp")
+    nq = start.q.size
+    assert np.abs(np.asarray(part.x)[:nq] - np.asarray(full.x)[:nq]).max() < 1e-8
+    forces = contact_forces(fewer, np.asarray(part.z)) - contact_forces(cs, np.asarray(full.z))
+    assert np.abs(forces).max() < 1e-7
+    assert map_labels(fewer) == map_labels(cs) == cs.planes.keys
+    assert fewer.labels != cs.labels

@@ -29,7 +29,7 @@ from ..contact.separation import separate
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Rescue
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
-from ..increment import PLANE_PROX, PlaneDamping, _pinned_only, pressed_rows
+from ..increment import PLANE_PROX, PlaneDamping, _pinned_only, map_labels, pressed_rows
 from ..level import LevelControls, LevelOutcome, LevelStatus, Progress, Step, qp_step
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP, WarmStart
@@ -647,11 +647,14 @@ def _relinearise(ck: ContactSet, patch: Patch, cs: ContactSet) -> ContactSet:
 
 
 def _set_keys(cs: ContactSet | None, formulation: str) -> frozenset:
-    """What identifies a row set for the Anderson reset: plane rows by label (their foot points move
-    with the plane), feature rows by label and point (``_row_keys``)."""
+    """What identifies the linearised map for the Anderson reset: with separating planes their keys
+    (a slack row entering or leaving a plane's band changes nothing, as for puncture:
+    ``increment.map_labels``), feature rows by label and point (``_row_keys``)."""
     if cs is None:
         return frozenset()
-    return frozenset(cs.labels) if formulation == "plane" else frozenset(_row_keys(cs))
+    if formulation == "plane":
+        return frozenset(map_labels(cs))
+    return frozenset(_row_keys(cs))
 
 
 def _rotations(q: Array) -> Array:
