@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any, NamedTuple
 
 import numpy as np
 import pytest
@@ -10,12 +11,37 @@ import pytest
 from qpscale import Design
 from qpscale.contact import ContactSettings, contact_forces, detect_contacts, gap_jacobian, penetration
 from qpscale.contact.planes import tangent_basis
+from qpscale.experiments.flexure import _take
 from qpscale.experiments.puncture import PunctureSetup, _load_point, build_model, run_puncture
 from qpscale.geometry import rotation_matrices
 from qpscale.increment import PunctureLevel, SQPSettings, assemble_increment, map_labels
 from qpscale.solvers import solve_qp
+from qpscale.tiling import Patch
 
 PLANE = ContactSettings()
+
+
+class EdgePath(NamedTuple):
+    """The 3x3 square array loaded at the top-face point (1, 0): its model and its converged path."""
+
+    patch: Patch
+    K: Any
+    load: Any
+    states: list
+
+
+@pytest.fixture(scope="module")
+def edge_path() -> EdgePath:
+    setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
+    patch, K = build_model(setup)
+    return EdgePath(patch, K, _load_point(patch, np.array([1.0, 0.0])), run_puncture(setup).states)
+
+
+def _level_near(path: EdgePath, delta: float) -> tuple:
+    """The converged state of ``path`` nearest ``delta`` (chosen by depth, not by index) and the one
+    before it."""
+    i = int(np.argmin([abs(s.delta - delta) for s in path.states]))
+    return path.states[i - 1], path.states[i]
 
 
 def _tilted(patch, seed=0, size=0.02):
@@ -71,14 +97,12 @@ def test_jacobian_against_finite_differences(shape):
     assert np.allclose(_gaps(patch, cs, q, q, np.zeros(cs.n_extra)), cs.gap, atol=1e-12)
 
 
-def test_plane_rows_of_a_pair_sum_to_zero_force():
+def test_plane_rows_of_a_pair_sum_to_zero_force(edge_path):
     # Stationarity in each plane's unknowns (contact.md sec. 7): the forces its rows put on the two
     # scales are equal and opposite, so the contact forces of the whole patch sum to zero (Newton's
     # third law), to the QP's KKT tolerance 1e-9 summed over the ~30 active rows: 3e-8.
-    setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
-    result = run_puncture(setup)
     # A state inside the path: the last one is the fold where the path snaps (puncture.md sec. 3).
-    state = min(result.states, key=lambda s: abs(s.delta - 0.4))
+    state = min(edge_path.states, key=lambda s: abs(s.delta - 0.4))
     Q = contact_forces(state.contacts, state.lam)
     assert np.abs(Q[:, :3].sum(axis=0)).max() < 3e-8
     assert np.abs(Q[:, :3]).max() > 0.1
@@ -87,15 +111,12 @@ def test_plane_rows_of_a_pair_sum_to_zero_force():
         assert abs(np.sum(state.lam[rows] * state.contacts.side[rows])) < 3e-8
 
 
-def test_converged_state_does_not_depend_on_the_starting_planes():
+def test_converged_state_does_not_depend_on_the_starting_planes(edge_path):
     # Path independence: the same load level solved from planes started on the best axes, and from
     # the same planes tilted by 0.05 rad, ends in the same state (SQP accuracy 1e-8 per DOF).
-    setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
-    patch, K = build_model(setup)
-    load = _load_point(patch, np.array([1.0, 0.0]))
-    result = run_puncture(setup)
-    state = result.states[len(result.states) // 2]
-    start = result.states[len(result.states) // 2 - 1]
+    patch, K, load, states = edge_path
+    state = states[len(states) // 2]
+    start = states[len(states) // 2 - 1]
     cs = start.contacts
     n = cs.planes.normal + 0.05 * tangent_basis(cs.planes.normal)[:, :, 0]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
@@ -115,18 +136,14 @@ def test_converged_state_does_not_depend_on_the_starting_planes():
     assert penetration(patch, b.q) <= 1e-9
 
 
-def test_plane_and_feature_formulations_agree_on_one_load_level():
+def test_plane_and_feature_formulations_agree_on_one_load_level(edge_path):
     # Two independent contact formulations of the same frictionless problem, one load level solved
     # from the same converged state (so both start in the same basin: the arrays have several
     # stable equilibria, formulations/puncture.md sec. 4): F and q agree to the feature
     # formulation's own accuracy (its clipped points carry ~1e-5 of sticky-axis error).
-    setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
-    patch, K = build_model(setup)
-    load = _load_point(patch, np.array([1.0, 0.0]))
-    result = run_puncture(setup)
-    # A level well inside the path (contact set settled), chosen by depth, not by index.
-    i = int(np.argmin([abs(s.delta - 0.2) for s in result.states]))
-    start, state = result.states[i - 1], result.states[i]
+    patch, K, load, _ = edge_path
+    # A level well inside the path (contact set settled).
+    start, state = _level_near(edge_path, 0.2)
     feature = ContactSettings(formulation="feature")
     a = (
         PunctureLevel(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=start.contacts)
@@ -175,7 +192,7 @@ def test_pieces_all_beyond_the_margin_give_no_plane_whatever_is_remembered():
     assert cs.planes.count == 0 and len(cs.gap) == 0
 
 
-def test_slack_rows_of_the_band_leave_the_map_and_its_labels_unchanged():
+def test_slack_rows_of_the_band_leave_the_map_and_its_labels_unchanged(edge_path):
     # Anderson's history restarts when the map changes (formulations/increment.md sec. 4,
     # "Restart on the planes"): a vertex entering or leaving a plane's margin band does not change
     # it.  The increment QP of a converged state inside the 3x3 path, solved with every row and
@@ -183,21 +200,15 @@ def test_slack_rows_of_the_band_leave_the_map_and_its_labels_unchanged():
     # QP's accuracy (KKT 1e-9 over lambda_min(K) ~ 0.1: 1e-8), the contact forces on the scales to
     # 1e-7 (their split between a face's dependent rows is not unique, the resultants are); and
     # the two row sets have the same map labels (the planes' keys) but different row labels.
-    setup = PunctureSetup(design=Design(rings=1), load_point=(1.0, 0.0), probe=False)
-    patch, K = build_model(setup)
-    load = _load_point(patch, np.array([1.0, 0.0]))
-    result = run_puncture(setup)
-    i = int(np.argmin([abs(s.delta - 0.2) for s in result.states]))
-    start, state = result.states[i - 1], result.states[i]
+    patch, K, load, _ = edge_path
+    start, state = _level_near(edge_path, 0.2)
     level = PunctureLevel(patch, K, start.q, load, state.delta, PLANE, SQPSettings(), previous=start.contacts)
     qp, cs = level.increment_qp()
     full = solve_qp(qp, solver="piqp")
     slack = (cs.gap > 1e-3) & (np.asarray(full.z) < 1e-12)
     assert 0 < slack.sum() < cs.m
     keep = ~slack
-    fields = ("a", "b", "piece_a", "piece_b", "normal", "xa", "xb", "gap", "kind", "side", "plane")
-    labels = tuple(lab for lab, k in zip(cs.labels, keep) if k)
-    fewer = replace(cs, labels=labels, **{f: getattr(cs, f)[keep] for f in fields})
+    fewer = _take(cs, keep)
     J = gap_jacobian(fewer, patch, start.q)
     part = solve_qp(assemble_increment(K, start.q, load, state.delta, fewer, J), solver="piqp")
     nq = start.q.size
