@@ -409,6 +409,7 @@ class Path:
         self.smooth_from = 0  # first state after the last jump (the curvature cap's window)
         self.unconfirmed = False  # an instability whose pushes found no lower energy (run)
         self.base_step: float | None = None  # the first run's first step: the step bounds (run)
+        self.probe: Equilibrium | None = None  # the origin's linear response (first_step)
 
     def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
         """The level at depth ``delta`` from ``start`` under the level's rescue policy;
@@ -490,9 +491,13 @@ class Path:
         return bool(np.linalg.norm(self.mirror.dof_rows @ mode) ** 2 > 0.5 * float(mode @ mode))
 
     def first_step(self, origin: Equilibrium) -> float:
-        """Step from the linear response: delta at failure ~ phi_c / (d tilt / d delta)."""
+        """Step from the linear response: delta at failure ~ phi_c / (d tilt / d delta).
+
+        The probe's state is kept (``probe``): the path's first level starts from it, scaled to
+        the level's depth (``_linear_response``; formulations/puncture.md sec. 2, Predictor)."""
         probe = 1e-4
         eq = self.solve(origin, probe, 0).unwrap()
+        self.probe = eq
         rate = self.tilt_of(eq) / probe
         if not rate > 0:
             raise SolverFailure(self.settings.solver, "load does not tilt the scale", 0)
@@ -617,6 +622,8 @@ class Path:
             if ceiling < np.inf:
                 step = ceiling - last.delta if retest else _split(ceiling - last.delta, g_last, g_ceiling)
             guess = predict(states, last.delta + step, self.smooth_from)
+            if len(states) == 1 and self.probe is not None and last.delta == 0.0 and guess is last:
+                guess = _linear_response(self.probe, step)
             outcome = self.solve(guess, last.delta + step, len(states))
             if outcome.state is None:
                 assert outcome.failure is not None
@@ -884,6 +891,12 @@ def predict(states: list[Equilibrium], delta: float, since: int = 0) -> Equilibr
         iterations=0,
         penetration=last.penetration,
     )
+
+
+def _linear_response(probe: Equilibrium, delta: float) -> Equilibrium:
+    """The start of the path's first level at ``delta``: the probe's state (the response at a
+    depth of 1e-4 L, ``Path.first_step``) scaled to ``delta``, with the probe's contact set."""
+    return replace(probe, q=probe.q * (delta / probe.delta), delta=delta, iterations=0)
 
 
 def _round_off(a: Equilibrium, b: Equilibrium) -> bool:

@@ -312,7 +312,9 @@ def alone():
 
 def test_halve_step_fires_when_a_level_fails_and_the_path_keeps_Fc(alone, monkeypatch):
     setup, clean = alone
-    faults = Faults(fail={7})  # one level's QP fails, and so does its retry
+    # One QP of the first step's level fails, and so does its retry.  (QPs 1-3 are the probe's,
+    # whose failure ends the path; QPs 7-10, the energy descent of the flagged first step.)
+    faults = Faults(fail={5})
     monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
     hurt = run_puncture(setup)
     halved = [e for e in hurt.events if e.kind == "rescue" and e.rescue == "halve_step"]

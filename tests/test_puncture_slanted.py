@@ -7,6 +7,8 @@ flips between solves of one depth; the location of those events used to restart 
 every step.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -94,6 +96,23 @@ def test_a_leap_across_phi_c_is_bisected_and_the_failure_stays_on_the_branch():
     # is bisected and the failure located on the branch, F_c* = 1.9018117 (measured).
     # Independent checks: the exact F_c check and the conservation of work.
     _reaches_phi_c_verified_and_balanced(fuzz_setup(PAST_PHI_C), max_levels=150)  # 56 measured
+
+
+# Design 633 of the same grid: a 3x3 square array slanted 8 deg towards 0 deg, gap 8e-4 L.
+FIRST_STEP = 633
+
+
+def test_the_first_level_starts_from_the_linear_response_and_stays_on_its_branch():
+    # The fuzz's four target increments make the first step 0.118 L, past the contacts that close
+    # near 1e-3 L.  Started from the unloaded state, that level converged onto another equilibrium
+    # at its depth, on a branch 4 % stiffer (F_c* = 1.2112615); its work balanced from the origin,
+    # so no check flagged it.  Started from the probe's response scaled to the depth, as every
+    # later level starts from its secant predictor, it stays on the branch that 8 and 16
+    # increments follow.  Independent value: the same design at 16 target increments (the
+    # increment-size independence of F_c); measured 1.1529267128 and 1.1529267124, 3e-10 apart.
+    coarse = _reaches_phi_c_verified_and_balanced(fuzz_setup(FIRST_STEP), max_levels=100)
+    fine = run_puncture(replace(fuzz_setup(FIRST_STEP), increments=16))
+    assert coarse.Fc_star == pytest.approx(fine.Fc_star, rel=1e-6)
 
 
 def test_an_inner_bracket_returns_to_the_nearest_open_ceiling_above_the_state():
