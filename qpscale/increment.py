@@ -380,6 +380,14 @@ def pressed_rows(lam: np.ndarray) -> np.ndarray:
     return lam > max(1e-6 * float(np.max(lam, initial=0.0)), 1e-12)
 
 
+def pressed_planes(cs: ContactSet, lam: np.ndarray) -> frozenset:
+    """Keys of the planes with a row that carries force (``pressed_rows``, the floor of
+    ``_pinned_only``): the planes the QP's step keeps."""
+    assert cs.planes is not None
+    on = np.unique(cs.plane[pressed_rows(lam) & (cs.plane >= 0)])
+    return frozenset(cs.planes.keys[j] for j in on.tolist())
+
+
 def _pinned_only(
     theta: np.ndarray,
     cs: ContactSet,

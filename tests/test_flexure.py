@@ -392,43 +392,6 @@ def test_slanted_triangle_arrays_converge_on_load_line_y(tiling, slant_dir, expe
         assert any(e.rescue == "other_plane_update" for e in r.extras["rescues"]) == damped
 
 
-def test_a_pressed_plane_that_separates_worse_than_the_best_axis_restarts_from_it():
-    # membrane.md sec. 8: a remembered plane that parts its pieces by more than STALE_PLANE_TOL less than
-    # their best separating axis can press pieces that do not touch (the staggered triangle array, load
-    # line x: 4.6e-4 E_m L^2 across a distance of 1.5e-5 L), so a pressed one restarts from the best axis.
-    # Two triangles of the staggered array at rest, 0.005 L apart: the plane turned by 0.1 rad about the
-    # vertical through its point parts them by 0.005 cos(0.1) minus the turn's lever, far below 0.005.
-    from types import SimpleNamespace
-
-    from qpscale.contact import ContactSettings, detect_contacts
-    from qpscale.experiments.flexure import STALE_PLANE_TOL, _drop_stale_planes
-
-    patch = Design(shape="triangle", tiling="staggered", rings=1).patch()
-    q = np.zeros((patch.n_scales, 5))
-    cs = detect_contacts(patch, q, ContactSettings(formulation="plane"))
-    model = SimpleNamespace(patch=patch, n_q=5 * patch.n_scales)
-    z = q.ravel()
-    turned, same = cs.planes.keys[0], cs.planes.keys[1]
-    n, p = cs.plane_memory[turned]
-    c, s = np.cos(0.1), np.sin(0.1)
-    memory = dict(cs.plane_memory)
-    memory[turned] = (np.array([c * n[0] - s * n[1], s * n[0] + c * n[1], n[2]]), p)
-    rows = cs.__class__(**{**cs.__dict__, "plane_memory": memory})
-    # Not pressed: kept whatever it separates (an unpressed plane carries nothing).
-    assert _drop_stale_planes(model, z, rows, frozenset()) is rows
-    out = _drop_stale_planes(model, z, rows, frozenset({turned, same}))
-    assert turned not in out.plane_memory and same in out.plane_memory
-    # The best axis itself is never stale: every plane of the fresh set is kept.
-    fresh = _drop_stale_planes(model, z, cs, frozenset(cs.planes.keys))
-    assert fresh is cs and STALE_PLANE_TOL < 1e-3 * patch.design.gap
-    # Restarted from the best axis: the rows of that pair are those of the set at rest again.
-    again = detect_contacts(patch, q, ContactSettings(formulation="plane"), previous=out)
-    j = again.planes.keys.index(turned)
-    np.testing.assert_allclose(again.gap[again.plane == j], cs.gap[cs.plane == 0], atol=1e-12)
-    np.testing.assert_allclose(again.planes.normal[j], n, atol=1e-12)
-    assert again.gap[again.plane == j].min() > 0.4 * patch.design.gap
-
-
 @pytest.mark.slow
 def test_unslanted_staggered_triangles_converge_on_load_line_x():
     # The curve that stopped at its first plate position (membrane.md sec. 8; about a minute): the plane

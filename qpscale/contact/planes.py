@@ -12,15 +12,19 @@ converged state does not depend on which axis the plane started from.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..geometry import Array, cross
 from .placement import World
-from .separation import SAT
+from .separation import SAT, separate
 from .symmetry import Mirror
+
+if TYPE_CHECKING:
+    from .detection import ContactSet
 
 # Vertex of the piece facing the plane's positive side (b) and of the one behind it (a).
 SIDE_B, SIDE_A = 1, -1
@@ -192,3 +196,43 @@ def plane_rows(
     labels = names[(side[order] > 0).astype(int), vertex[order]].tolist() if len(order) else []
     order_of = (plane[order], side[order], vertex[order], x[order], gap[order])
     return PlaneRows(planes, *order_of, labels, key_array)
+
+
+#: A pressed plane that parts its pieces by more than this (L) less than their best separating axis
+#: is stale (``drop_stale``): 1000 times the penetration tolerance, so a plane of a converged contact
+#: (both separations within ~1e-9 of zero) never is.
+STALE_PLANE_TOL = 1e-6
+
+
+def drop_stale(
+    world: World, rows: ContactSet | None, pressed: frozenset, tol: float = STALE_PLANE_TOL
+) -> ContactSet | None:
+    """``rows`` without the ``pressed`` planes that separate their pieces worse than the best axis.
+
+    A plane's separation of its pieces is ``min n.(x_b) - max n.(x_a)`` over their vertices (its
+    shift is free); the best axis's is the separating-axis test's ``sep`` (the pieces' distance when
+    they are apart).  Where the plane's is lower by more than ``tol`` the plane can press pieces
+    that do not touch, and its linearised rotation, whose lever is the rows' spread across the
+    hinge, turns it back only by ``lambda * lever / rho`` per QP (contact.md sec. 7, membrane.md
+    sec. 8): such a plane is dropped from the memory, and ``plane_rows`` restarts it from the best
+    axis as it does a new pair's.
+    """
+    if rows is None or not rows.plane_memory:
+        return rows
+    memory = {k: v for k, v in rows.plane_memory.items() if k in pressed}
+    if not memory:
+        return rows
+    keys = np.array(list(memory), dtype=int).reshape(-1, 4)
+    pairs = np.unique(keys[:, [0, 2]], axis=0)
+    sat = separate(world, pairs)
+    pieces = zip(sat.a.tolist(), sat.pa.tolist(), sat.b.tolist(), sat.pb.tolist())
+    index = {k: j for j, k in enumerate(pieces)}
+    best = sat.sep[[index[tuple(k)] for k in keys.tolist()]]
+    n = np.array([memory[k][0] for k in memory])
+    VA, VB = world.verts[keys[:, 0], keys[:, 1]], world.verts[keys[:, 2], keys[:, 3]]
+    apart = np.einsum("pvk,pk->pv", VB, n).min(axis=1) - np.einsum("pvk,pk->pv", VA, n).max(axis=1)
+    stale = best > apart + tol
+    if not stale.any():
+        return rows
+    drop = {k for k, s in zip(memory, stale.tolist()) if s}
+    return replace(rows, plane_memory={k: v for k, v in rows.plane_memory.items() if k not in drop})

@@ -25,11 +25,11 @@ from shapely.geometry import Polygon, box
 from .. import level
 from ..contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
 from ..contact.placement import place
-from ..contact.separation import separate
+from ..contact.planes import drop_stale
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Rescue
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
-from ..increment import PLANE_PROX, PlaneDamping, _pinned_only, map_labels, pressed_rows
+from ..increment import PLANE_PROX, PlaneDamping, _pinned_only, map_labels, pressed_planes
 from ..level import LevelControls, LevelOutcome, LevelStatus, Progress, Step, qp_step
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
 from ..qp import IncrementQP, WarmStart
@@ -51,11 +51,6 @@ MAX_RELEASE_ROUNDS = 20
 # E_m L^2, diagonal of S 70-200 E_m L for the scale DOFs: the membrane in the gaps), so the weight is
 # scaled up by this factor to hold a hinged plane comparably firmly (membrane.md sec. 8).
 FLEXURE_DAMPING = 100.0
-# A remembered separating plane that parts its two pieces by this much (L) less than their best
-# separating axis is not a contact certificate any more: it restarts from that axis (membrane.md
-# sec. 8, the staggered triangle array).  1000 times the penetration tolerance, so a contact that has
-# converged (both separations within ~1e-9 of zero) never restarts.
-STALE_PLANE_TOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -713,7 +708,9 @@ class _FlexureLevel:
     def linearise(self, z: Array, rows: ContactSet | None, refresh: float | None) -> _Linearised:
         Gp, hp, _ = _plate_rows(self.model, z, self.z_plate)
         if self.model.setup.formulation == "plane":
-            rows = _drop_stale_planes(self.model, z, rows, self.pressed)
+            if self.model.patch is not None:
+                world = place(self.model.patch, z[: self.model.n_q].reshape(-1, 5))
+                rows = drop_stale(world, rows, self.pressed)
         Gc, hc, cs = _contact_rows(self.model, z, rows, refresh)
         merged = cs
         if self.model.setup.formulation == "feature":
@@ -742,7 +739,7 @@ class _FlexureLevel:
         if cs is not None and cs.planes is not None and cs.planes.count:
             theta = _pinned_only(x[n:], cs, lam, violated=self.damped)
             swing = float(np.max(np.abs(theta), initial=0.0))
-            self.pressed = _pressed_planes(cs, lam)
+            self.pressed = pressed_planes(cs, lam)
             cs = merged = replace(cs, plane_memory=cs.planes.advanced(theta))
             if self.damped:
                 self.damping.update(cs, theta, lam)
@@ -780,48 +777,6 @@ class _FlexureLevel:
 
     def state(self, z: Array, answer: FlexureState, progress: Progress) -> FlexureState:
         return replace(answer, z=z, iterations=progress.iterations, penetration=progress.penetration)
-
-
-def _pressed_planes(cs: ContactSet, lam: Array) -> frozenset:
-    """Keys of the planes with a row that carries force (``increment.pressed_rows``, the floor of
-    ``_pinned_only``): the planes the QP's step keeps."""
-    assert cs.planes is not None
-    on = np.unique(cs.plane[pressed_rows(lam) & (cs.plane >= 0)])
-    return frozenset(cs.planes.keys[j] for j in on.tolist())
-
-
-def _drop_stale_planes(
-    model: FlexureModel, z: Array, rows: ContactSet | None, pressed: frozenset
-) -> ContactSet | None:
-    """``rows`` without the ``pressed`` planes that separate their pieces worse than the best axis.
-
-    A plane's separation of its pieces is ``min n.(x_b) - max n.(x_a)`` over their vertices (its
-    shift is free); the best axis's is the separating-axis test's ``sep`` (the pieces' distance when
-    they are apart).  Where the plane's is lower by more than ``STALE_PLANE_TOL`` the plane can press
-    pieces that do not touch, and its linearised rotation, whose lever is the rows' spread across
-    the hinge, turns it back only by ``lambda * lever / rho`` per QP (membrane.md sec. 8): such a
-    plane is dropped from the memory and ``detect_contacts`` restarts it from the best axis.
-    """
-    if rows is None or not rows.plane_memory or model.patch is None:
-        return rows
-    memory = {k: v for k, v in rows.plane_memory.items() if k in pressed}
-    if not memory:
-        return rows
-    keys = np.array(list(memory), dtype=int).reshape(-1, 4)
-    world = place(model.patch, z[: model.n_q].reshape(-1, 5))
-    pairs = np.unique(keys[:, [0, 2]], axis=0)
-    sat = separate(world, pairs)
-    pieces = zip(sat.a.tolist(), sat.pa.tolist(), sat.b.tolist(), sat.pb.tolist())
-    index = {k: j for j, k in enumerate(pieces)}
-    best = sat.sep[[index[tuple(k)] for k in keys.tolist()]]
-    n = np.array([memory[k][0] for k in memory])
-    VA, VB = world.verts[keys[:, 0], keys[:, 1]], world.verts[keys[:, 2], keys[:, 3]]
-    apart = np.einsum("pvk,pk->pv", VB, n).min(axis=1) - np.einsum("pvk,pk->pv", VA, n).max(axis=1)
-    stale = best > apart + STALE_PLANE_TOL
-    if not stale.any():
-        return rows
-    drop = {k for k, s in zip(memory, stale.tolist()) if s}
-    return replace(rows, plane_memory={k: v for k, v in rows.plane_memory.items() if k not in drop})
 
 
 def _membrane_qp(
