@@ -622,8 +622,8 @@ class Path:
             if ceiling < np.inf:
                 step = ceiling - last.delta if retest else _split(ceiling - last.delta, g_last, g_ceiling)
             guess = predict(states, last.delta + step, self.smooth_from)
-            if len(states) == 1 and self.probe is not None and last.delta == 0.0 and guess is last:
-                guess = _linear_response(self.probe, step)
+            if guess is last and last.delta == 0.0 and self.probe is not None:
+                guess = _linear_response(self.probe, last.delta + step)
             outcome = self.solve(guess, last.delta + step, len(states))
             if outcome.state is None:
                 assert outcome.failure is not None

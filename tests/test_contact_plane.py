@@ -227,13 +227,11 @@ def test_a_pressed_plane_that_separates_worse_than_the_best_axis_restarts_from_i
     # increment.md sec. 4, "Stale pressed planes"; the rule is not used there.)
     # Two triangles of the staggered array at rest, 0.005 L apart: the plane turned by 0.1 rad about the
     # vertical through its point parts them by 0.005 cos(0.1) minus the turn's lever, far below 0.005.
-    from qpscale.contact.placement import place
     from qpscale.contact.planes import STALE_PLANE_TOL, drop_stale
 
     patch = Design(shape="triangle", tiling="staggered", rings=1).patch()
     q = np.zeros((patch.n_scales, 5))
     cs = detect_contacts(patch, q, ContactSettings(formulation="plane"))
-    world = place(patch, q)
     turned, same = cs.planes.keys[0], cs.planes.keys[1]
     n, p = cs.plane_memory[turned]
     c, s = np.cos(0.1), np.sin(0.1)
@@ -241,11 +239,11 @@ def test_a_pressed_plane_that_separates_worse_than_the_best_axis_restarts_from_i
     memory[turned] = (np.array([c * n[0] - s * n[1], s * n[0] + c * n[1], n[2]]), p)
     rows = cs.__class__(**{**cs.__dict__, "plane_memory": memory})
     # Not pressed: kept whatever it separates (an unpressed plane carries nothing).
-    assert drop_stale(world, rows, frozenset()) is rows
-    out = drop_stale(world, rows, frozenset({turned, same}))
+    assert drop_stale(patch, q, rows, frozenset()) is rows
+    out = drop_stale(patch, q, rows, frozenset({turned, same}))
     assert turned not in out.plane_memory and same in out.plane_memory
     # The best axis itself is never stale: every plane of the fresh set is kept.
-    fresh = drop_stale(world, cs, frozenset(cs.planes.keys))
+    fresh = drop_stale(patch, q, cs, frozenset(cs.planes.keys))
     assert fresh is cs and STALE_PLANE_TOL < 1e-3 * patch.design.gap
     # Restarted from the best axis: the rows of that pair are those of the set at rest again.
     again = detect_contacts(patch, q, ContactSettings(formulation="plane"), previous=out)

@@ -19,11 +19,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..geometry import Array, cross
-from .placement import World
+from .placement import World, place
 from .separation import SAT, separate
 from .symmetry import Mirror
 
 if TYPE_CHECKING:
+    from ..tiling import Patch
     from .detection import ContactSet
 
 # Vertex of the piece facing the plane's positive side (b) and of the one behind it (a).
@@ -205,7 +206,7 @@ STALE_PLANE_TOL = 1e-6
 
 
 def drop_stale(
-    world: World, rows: ContactSet | None, pressed: frozenset, tol: float = STALE_PLANE_TOL
+    patch: Patch, q: Array, rows: ContactSet | None, pressed: frozenset, tol: float = STALE_PLANE_TOL
 ) -> ContactSet | None:
     """``rows`` without the ``pressed`` planes that separate their pieces worse than the best axis.
 
@@ -215,7 +216,8 @@ def drop_stale(
     that do not touch, and its linearised rotation, whose lever is the rows' spread across the
     hinge, turns it back only by ``lambda * lever / rho`` per QP (contact.md sec. 7, membrane.md
     sec. 8): such a plane is dropped from the memory, and ``plane_rows`` restarts it from the best
-    axis as it does a new pair's.
+    axis as it does a new pair's.  ``q`` is the configuration ``(n, 5)`` of ``patch``'s scales; it
+    is placed only when a pressed plane is remembered.
     """
     if rows is None or not rows.plane_memory:
         return rows
@@ -223,6 +225,7 @@ def drop_stale(
     if not memory:
         return rows
     keys = np.array(list(memory), dtype=int).reshape(-1, 4)
+    world = place(patch, q)
     pairs = np.unique(keys[:, [0, 2]], axis=0)
     sat = separate(world, pairs)
     pieces = zip(sat.a.tolist(), sat.pa.tolist(), sat.b.tolist(), sat.pb.tolist())

@@ -24,7 +24,6 @@ from shapely.geometry import Polygon, box
 
 from .. import level
 from ..contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
-from ..contact.placement import place
 from ..contact.planes import drop_stale
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Rescue
@@ -709,8 +708,7 @@ class _FlexureLevel:
         Gp, hp, _ = _plate_rows(self.model, z, self.z_plate)
         if self.model.setup.formulation == "plane":
             if self.model.patch is not None:
-                world = place(self.model.patch, z[: self.model.n_q].reshape(-1, 5))
-                rows = drop_stale(world, rows, self.pressed)
+                rows = drop_stale(self.model.patch, z[: self.model.n_q].reshape(-1, 5), rows, self.pressed)
         Gc, hc, cs = _contact_rows(self.model, z, rows, refresh)
         merged = cs
         if self.model.setup.formulation == "feature":
