@@ -90,6 +90,9 @@ TILT_LOCATED = 1e-6
 # one depth from different starts differ by ~2e-9 phi_c in tilt (default scene), so a tighter
 # target only re-solves the noise (13 more levels there), and F_c moves by ~1e-9 across it.
 TILT_TARGET = 1e-8
+# A failure search's cut whose level fails is halved towards the bracket's lower end up to this many
+# times (``Path._cut``), as the path halves a step whose level fails.
+FAILURE_SEARCH_HALVINGS = 8
 
 
 class LevelSolver(Protocol):
@@ -515,7 +518,7 @@ class Path:
                 # 60 deg towards 45 deg as an invalid input).
                 return self._tilt_at_round_off(a, b, index)
             d = (a.delta * f_hi - b.delta * f_lo) / (f_hi - f_lo)
-            eq = self.solve(_between(a, b, d), d, index).unwrap()
+            eq = self._cut(a, b, d, index)
             f = self.tilt_of(eq) - self.phi_c
             if abs(f) <= TILT_TARGET * self.phi_c:
                 return eq
@@ -530,6 +533,20 @@ class Path:
                     f_lo /= 2
                 side = 1
         raise SolverFailure(self.settings.solver, "failure tilt not located", index)
+
+    def _cut(self, a: Equilibrium, b: Equilibrium, d: float, index: int) -> Equilibrium:
+        """The failure search's state at the cut ``d`` of its bracket ``a, b``.  A cut whose level
+        fails is halved towards ``a``, as the path halves a step whose level fails (``halve_step``,
+        sec. 2): any converged state inside the bracket narrows it.  After
+        ``FAILURE_SEARCH_HALVINGS`` halvings the cut's failure ends the path."""
+        for _ in range(FAILURE_SEARCH_HALVINGS):
+            outcome = self.solve(_between(a, b, d), d, index)
+            if outcome.state is not None:
+                return outcome.state
+            assert outcome.failure is not None
+            self.events.append(Rescue("halve_step", d, index, outcome.failure.status))
+            d = 0.5 * (a.delta + d)
+        return self.solve(_between(a, b, d), d, index).unwrap()
 
     def _tilt_at_round_off(self, a: Equilibrium, b: Equilibrium, index: int) -> Equilibrium:
         """The failure search's bracket ``a, b`` is at round-off of the depth: the SQP's accuracy

@@ -323,6 +323,30 @@ def test_halve_step_fires_when_a_level_fails_and_the_path_keeps_Fc(alone, monkey
     assert hurt.Fc_star == pytest.approx(clean.Fc_star, rel=1e-6)
 
 
+def test_the_failure_search_halves_a_cut_whose_level_fails_and_keeps_Fc(alone, monkeypatch):
+    setup, clean = alone
+    # Find the failure search's first QP on the unperturbed path, then fail it (and its retry).
+    faults = Faults()
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", faults)
+    first: list[int] = []
+    original = continuation.Path.locate_failure
+
+    def locate(self, lo, hi, index):
+        first.append(len(faults.seen) + 1)
+        return original(self, lo, hi, index)
+
+    monkeypatch.setattr(continuation.Path, "locate_failure", locate)
+    again = run_puncture(setup)
+    assert again.Fc_star == pytest.approx(clean.Fc_star, rel=1e-12) and len(first) == 1
+    monkeypatch.setitem(solvers._REGISTRY, "clarabel", Faults(fail={first[0]}))
+    hurt = run_puncture(setup)
+    halved = [e for e in hurt.events if e.kind == "rescue" and e.rescue == "halve_step"]
+    assert len(halved) == 1 and halved[0].detail == "injected fault"
+    # The cut's level failed, the halved cut converged, and the search went on to phi_c: F_c is
+    # located to the search's tolerance (puncture.md sec. 3, 1e-6 or better).
+    assert hurt.Fc_star == pytest.approx(clean.Fc_star, rel=1e-6)
+
+
 def test_plain_iteration_fires_when_no_step_converges_and_the_path_keeps_Fc(alone, monkeypatch):
     setup, clean = alone
     faults = Faults(every=True)
