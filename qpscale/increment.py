@@ -517,6 +517,7 @@ class _SequentialQP:
         s = at.settings
         self.at, self.damping, self.reduced = at, PlaneDamping(), reduced
         self.joined: set[int] = set()  # pairs a step brought into the screened QP (sec. 2c)
+        self.pressed: frozenset = frozenset()  # keys of the planes the last QP's rows pressed
         auto = at.patch.n_scales >= condensation.AUTO_FROM
         self.condense = s.condense if s.condense is not None else auto
         self.controls = level.LevelControls(
@@ -526,8 +527,15 @@ class _SequentialQP:
     def linearise(self, q: np.ndarray, rows: ContactSet | None, refresh: float | None) -> _Linearised:
         at, damped = self.at, self.at.settings.plane_damping
         cs = None
+        # A pressed plane left edge-on behind its pieces restarts from their best axis (sec. 4,
+        # "Stale pressed planes"): its linearised turn is a constant step that Anderson's
+        # extrapolation cannot converge.  The plain iteration (a landing's descent) converges
+        # through it and keeps its linearisations.
+        pressed = self.pressed if at.settings.anderson_depth > 0 else frozenset()
         if at.contact is not None:
-            cs = detect_contacts(at.patch, q, at.contact, previous=rows, refresh=refresh, mirror=at.mirror)
+            cs = detect_contacts(
+                at.patch, q, at.contact, previous=rows, refresh=refresh, mirror=at.mirror, pressed=pressed
+            )
         J = gap_jacobian(cs, at.patch, q) if cs is not None and len(cs.gap) else None
         weight = self.damping.weights(cs) if damped and cs is not None and cs.n_extra else None
         qp = assemble_increment(at.K, q, at.load, at.delta, cs, J, weight)
@@ -557,6 +565,7 @@ class _SequentialQP:
         theta = x[q.size :]
         if cs is not None and cs.planes is not None and len(theta):
             theta = _pinned_only(theta, cs, lam, violated=True, mirror=at.mirror)
+            self.pressed = pressed_planes(cs, lam)
             cs = replace(cs, plane_memory=cs.planes.advanced(theta))
             if s.plane_damping:
                 self.damping.update(cs, theta, lam)

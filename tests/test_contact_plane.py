@@ -223,31 +223,71 @@ def test_a_pressed_plane_that_separates_worse_than_the_best_axis_restarts_from_i
     # contact.md sec. 7: a remembered plane that parts its pieces by more than STALE_PLANE_TOL less than
     # their best separating axis can press pieces that do not touch (flexure's staggered triangle array,
     # load line x: 4.6e-4 E_m L^2 across a distance of 1.5e-5 L, membrane.md sec. 8), so a pressed one
-    # restarts from the best axis.  (Puncture's slanted staggered triangle drifts the same way,
-    # increment.md sec. 4, "Stale pressed planes"; the rule is not used there.)
-    # Two triangles of the staggered array at rest, 0.005 L apart: the plane turned by 0.1 rad about the
-    # vertical through its point parts them by 0.005 cos(0.1) minus the turn's lever, far below 0.005.
-    from qpscale.contact.planes import STALE_PLANE_TOL, drop_stale
+    # restarts from the best axis.  (Puncture's slanted staggered triangle drifts the same way, and its
+    # accelerated iteration uses the rule too: increment.md sec. 4, "Stale pressed planes".)
+    # Two triangles of the staggered array at rest, 0.005 L apart: the plane turned by 1e-3 rad about
+    # the vertical through its point parts them by about 1e-3 L less (its vertices' spread along the
+    # plane times the turn): far above STALE_PLANE_TOL, far below the margin (0.1 L), whose test alone
+    # keeps it.
+    from qpscale.contact.planes import STALE_PLANE_TOL
 
     patch = Design(shape="triangle", tiling="staggered", rings=1).patch()
     q = np.zeros((patch.n_scales, 5))
-    cs = detect_contacts(patch, q, ContactSettings(formulation="plane"))
+    cs = detect_contacts(patch, q, PLANE)
     turned, same = cs.planes.keys[0], cs.planes.keys[1]
     n, p = cs.plane_memory[turned]
-    c, s = np.cos(0.1), np.sin(0.1)
+    c, s = np.cos(1e-3), np.sin(1e-3)
     memory = dict(cs.plane_memory)
     memory[turned] = (np.array([c * n[0] - s * n[1], s * n[0] + c * n[1], n[2]]), p)
-    rows = cs.__class__(**{**cs.__dict__, "plane_memory": memory})
+    rows = replace(cs, plane_memory=memory)
+
+    def normal(out, key):
+        return out.planes.normal[out.planes.keys.index(key)]
+
     # Not pressed: kept whatever it separates (an unpressed plane carries nothing).
-    assert drop_stale(patch, q, rows, frozenset()) is rows
-    out = drop_stale(patch, q, rows, frozenset({turned, same}))
-    assert turned not in out.plane_memory and same in out.plane_memory
-    # The best axis itself is never stale: every plane of the fresh set is kept.
-    fresh = drop_stale(patch, q, cs, frozenset(cs.planes.keys))
-    assert fresh is cs and STALE_PLANE_TOL < 1e-3 * patch.design.gap
-    # Restarted from the best axis: the rows of that pair are those of the set at rest again.
-    again = detect_contacts(patch, q, ContactSettings(formulation="plane"), previous=out)
-    j = again.planes.keys.index(turned)
-    np.testing.assert_allclose(again.gap[again.plane == j], cs.gap[cs.plane == 0], atol=1e-12)
-    np.testing.assert_allclose(again.planes.normal[j], n, atol=1e-12)
-    assert again.gap[again.plane == j].min() > 0.4 * patch.design.gap
+    kept = detect_contacts(patch, q, PLANE, previous=rows)
+    np.testing.assert_array_equal(normal(kept, turned), memory[turned][0])
+    j = kept.planes.keys.index(turned)
+    assert kept.gap[kept.plane == j].min() < 0.5 * patch.design.gap - 1e3 * STALE_PLANE_TOL
+    # Pressed: restarted from the best axis, and its rows are those of the set at rest again; the
+    # other pressed plane, the best axis itself, is kept.
+    out = detect_contacts(patch, q, PLANE, previous=rows, pressed=frozenset({turned, same}))
+    j = out.planes.keys.index(turned)
+    np.testing.assert_allclose(normal(out, turned), n, atol=1e-12)
+    np.testing.assert_allclose(out.gap[out.plane == j], cs.gap[cs.plane == 0], atol=1e-12)
+    np.testing.assert_array_equal(normal(out, same), cs.plane_memory[same][0])
+    # The best axis is never stale: with every plane pressed, the fresh set is its own next.
+    fresh = detect_contacts(patch, q, PLANE, previous=cs, pressed=frozenset(cs.planes.keys))
+    np.testing.assert_array_equal(fresh.planes.normal, cs.planes.normal)
+    assert STALE_PLANE_TOL < 1e-3 * patch.design.gap
+
+
+def test_the_accelerated_iteration_restarts_a_stale_pressed_plane_and_the_plain_one_keeps_it(edge_path):
+    # increment.md sec. 4, "Stale pressed planes": in the accelerated iteration a plane the last QP
+    # pressed restarts from its pieces' best axis once it parts them by more than STALE_PLANE_TOL less
+    # than that axis; the plain iteration (a landing's descent) keeps its planes.  A converged state of
+    # the 3x3 square with its most pressed plane turned by 1e-3 rad about its point: within the margin,
+    # so the margin's test keeps it, but stale by about its rows' spread times 1e-3, far above 1e-6 L.
+    from qpscale.increment import _SequentialQP
+
+    _, state = _level_near(edge_path, 0.3)
+    cs = state.contacts
+    force = np.bincount(cs.plane[cs.side > 0], weights=state.lam[cs.side > 0], minlength=cs.planes.count)
+    j = int(np.argmax(force))
+    key = cs.planes.keys[j]
+    n, p = cs.plane_memory[key]
+    e = tangent_basis(n[None])[0][:, 0]
+    turned = dict(cs.plane_memory)
+    turned[key] = ((n + 1e-3 * e) / np.linalg.norm(n + 1e-3 * e), p)
+    start = replace(cs, plane_memory=turned)
+    args = (edge_path.patch, edge_path.K, state.q, edge_path.load, state.delta, PLANE)
+    normals = {}
+    for depth in (5, 0):
+        sqp = _SequentialQP(PunctureLevel(*args, SQPSettings(anderson_depth=depth)))
+        sqp.pressed = frozenset({key})  # as the attempt's last QP left it
+        _, _, rows, _ = sqp.linearise(state.q, start, None)
+        normals[depth] = rows.planes.normal[rows.planes.keys.index(key)]
+    # Restarted: the best axis of two squares in face contact is the face normal, the converged
+    # plane's own to the state's accuracy; kept: the turned normal, exactly.
+    assert np.abs(normals[5] - n).max() < 1e-7
+    np.testing.assert_array_equal(normals[0], turned[key][0])

@@ -210,6 +210,7 @@ def detect_contacts(
     previous: ContactSet | None = None,
     refresh: float | None = None,
     mirror: Mirror | None = None,
+    pressed: frozenset = frozenset(),
 ) -> ContactSet:
     """Contact points of every candidate pair closer than ``settings.margin`` (section 3).
 
@@ -230,6 +231,10 @@ def detect_contacts(
         best separating axis (sec. 7).
     mirror : Mirror, optional
         Plane formulation on a symmetric path: the planes are held mirror-symmetric (sec. 8).
+    pressed : frozenset, optional
+        Plane formulation: keys of the planes the last QP pressed; one of them restarts from its
+        best axis where it parts its pieces by more than ``STALE_PLANE_TOL`` less than that axis
+        (sec. 7, ``plane_rows``).
 
     Returns
     -------
@@ -252,7 +257,7 @@ def detect_contacts(
     active = sat.sep < settings.margin
     if settings.formulation == "plane":
         memory = previous.plane_memory if previous is not None else None
-        rows = plane_rows(world, sat, active, settings.margin, memory, refresh, mirror)
+        rows = plane_rows(world, sat, active, settings.margin, memory, refresh, mirror, pressed)
         return _plane_set(world, q, sat, rows)
     best_face = np.maximum(sat.face_a.max(axis=1), sat.face_b.max(axis=1))
     best_edge = sat.edge.reshape(len(sat.sep), -1).max(axis=1)

@@ -12,20 +12,15 @@ converged state does not depend on which axis the plane started from.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import cache
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..geometry import Array, cross
-from .placement import World, place
-from .separation import SAT, separate
+from .placement import World
+from .separation import SAT
 from .symmetry import Mirror
-
-if TYPE_CHECKING:
-    from ..tiling import Patch
-    from .detection import ContactSet
 
 # Vertex of the piece facing the plane's positive side (b) and of the one behind it (a).
 SIDE_B, SIDE_A = 1, -1
@@ -94,6 +89,12 @@ def best_axes(sat: SAT, world: World, rows: np.ndarray) -> Array:
     return np.where((which == 0)[:, None], u_a, np.where((which == 1)[:, None], u_b, u_e))
 
 
+#: A pressed plane that parts its pieces by more than this (L) less than their best separating axis
+#: is stale (``plane_rows``, ``pressed``): 1000 times the penetration tolerance, so a plane of a
+#: converged contact (both separations within ~1e-9 of zero) never is.
+STALE_PLANE_TOL = 1e-6
+
+
 @dataclass(frozen=True)
 class PlaneRows:
     """Vertex rows against the planes, eq. (20): gap_k = side_k n_j . (x_k - p_j)."""
@@ -122,6 +123,7 @@ def plane_rows(
     memory: dict[tuple[int, int, int, int], tuple[Array, Array]] | None,
     refresh: float | None = None,
     mirror: Mirror | None = None,
+    pressed: frozenset = frozenset(),
 ) -> PlaneRows:
     """Planes of the active piece pairs and the vertex rows within ``margin`` of them.
 
@@ -134,6 +136,13 @@ def plane_rows(
     sequential QP then stalls with the overlap), and the best axis is the shortest way out.  So
     does a remembered plane that separates the pieces worse than their best axis by more than
     ``margin`` (stale: the increment QP cannot rotate it far enough and becomes infeasible).
+    A remembered plane among the keys ``pressed`` (the planes the last QP pressed) is held to a
+    much tighter test: it restarts where it parts its pieces by more than ``STALE_PLANE_TOL`` less
+    than their best axis.  Its separation is ``min n.x_b - max n.x_a`` over the pieces' vertices
+    (its shift is free), the best axis's the separating-axis test's ``sep`` (the pieces' distance
+    when they are apart).  Such a plane can press pieces that do not touch, and its linearised
+    rotation, whose lever is the rows' spread across the hinge, turns it back only by
+    ``lambda * lever / rho`` per QP (membrane.md sec. 8, increment.md sec. 4).
     With ``mirror`` (a symmetric path, sec. 8) a plane restarts together with its image, and every
     plane is replaced by the mean of itself and its partner's image before the rows are taken.
     """
@@ -164,6 +173,10 @@ def plane_rows(
         below_a = np.einsum("pvk,pk->pv", pm[:, None, :] - VA[known], nm).min(axis=1)
         above_b = np.einsum("pvk,pk->pv", VB[known] - pm[:, None, :], nm).min(axis=1)
         kept[known] = np.minimum(below_a, above_b) >= sat.sep[rows[known]] - margin
+        if pressed:
+            tight = np.array([keys[j] in pressed for j in known.tolist()], dtype=bool)
+            stale = sat.sep[rows[known]] > below_a + above_b + STALE_PLANE_TOL
+            kept[known] &= ~(tight & stale)
     if mirror is not None:
         kept = ~mirror.orbit_any(keys, ~kept)
     if kept.any():
@@ -197,45 +210,3 @@ def plane_rows(
     labels = names[(side[order] > 0).astype(int), vertex[order]].tolist() if len(order) else []
     order_of = (plane[order], side[order], vertex[order], x[order], gap[order])
     return PlaneRows(planes, *order_of, labels, key_array)
-
-
-#: A pressed plane that parts its pieces by more than this (L) less than their best separating axis
-#: is stale (``drop_stale``): 1000 times the penetration tolerance, so a plane of a converged contact
-#: (both separations within ~1e-9 of zero) never is.
-STALE_PLANE_TOL = 1e-6
-
-
-def drop_stale(
-    patch: Patch, q: Array, rows: ContactSet | None, pressed: frozenset, tol: float = STALE_PLANE_TOL
-) -> ContactSet | None:
-    """``rows`` without the ``pressed`` planes that separate their pieces worse than the best axis.
-
-    A plane's separation of its pieces is ``min n.(x_b) - max n.(x_a)`` over their vertices (its
-    shift is free); the best axis's is the separating-axis test's ``sep`` (the pieces' distance when
-    they are apart).  Where the plane's is lower by more than ``tol`` the plane can press pieces
-    that do not touch, and its linearised rotation, whose lever is the rows' spread across the
-    hinge, turns it back only by ``lambda * lever / rho`` per QP (contact.md sec. 7, membrane.md
-    sec. 8): such a plane is dropped from the memory, and ``plane_rows`` restarts it from the best
-    axis as it does a new pair's.  ``q`` is the configuration ``(n, 5)`` of ``patch``'s scales; it
-    is placed only when a pressed plane is remembered.
-    """
-    if rows is None or not rows.plane_memory:
-        return rows
-    memory = {k: v for k, v in rows.plane_memory.items() if k in pressed}
-    if not memory:
-        return rows
-    keys = np.array(list(memory), dtype=int).reshape(-1, 4)
-    world = place(patch, q)
-    pairs = np.unique(keys[:, [0, 2]], axis=0)
-    sat = separate(world, pairs)
-    pieces = zip(sat.a.tolist(), sat.pa.tolist(), sat.b.tolist(), sat.pb.tolist())
-    index = {k: j for j, k in enumerate(pieces)}
-    best = sat.sep[[index[tuple(k)] for k in keys.tolist()]]
-    n = np.array([memory[k][0] for k in memory])
-    VA, VB = world.verts[keys[:, 0], keys[:, 1]], world.verts[keys[:, 2], keys[:, 3]]
-    apart = np.einsum("pvk,pk->pv", VB, n).min(axis=1) - np.einsum("pvk,pk->pv", VA, n).max(axis=1)
-    stale = best > apart + tol
-    if not stale.any():
-        return rows
-    drop = {k for k, s in zip(memory, stale.tolist()) if s}
-    return replace(rows, plane_memory={k: v for k, v in rows.plane_memory.items() if k not in drop})

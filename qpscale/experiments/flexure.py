@@ -24,7 +24,6 @@ from shapely.geometry import Polygon, box
 
 from .. import level
 from ..contact import ContactSet, ContactSettings, detect_contacts, gap_jacobian, penetration
-from ..contact.planes import drop_stale
 from ..errors import InvalidDesign, SolverFailure
 from ..events import Rescue
 from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_operator
@@ -538,20 +537,26 @@ PLANE = ContactSettings(formulation="plane")
 
 
 def _contact_rows(
-    model: FlexureModel, z: Array, previous: ContactSet | None, refresh: float | None = None
+    model: FlexureModel,
+    z: Array,
+    previous: ContactSet | None,
+    refresh: float | None = None,
+    pressed: frozenset = frozenset(),
 ) -> tuple[sp.csr_matrix, Array, ContactSet | None]:
     """Scale-scale rows ``-J (z, theta) <= g - J_q q_n`` from qpscale.contact, eq. (12), and their set.
 
     Columns: the retained DOFs ``z``, then the plane unknowns ``theta`` of the set (plane
     formulation; none for the feature formulation).  ``previous`` carries the planes moved by the
-    last QP (plane) or each pair's sticky axis (feature).
+    last QP (plane) or each pair's sticky axis (feature); of the planes, those in ``pressed`` (the
+    last QP pressed them) restart from their best axis once stale by ``STALE_PLANE_TOL``
+    (contact.md sec. 7, membrane.md sec. 8).
     """
     n = len(z)
     if model.patch is None or model.patch.n_scales < 2 or not model.setup.contact:
         return sp.csr_matrix((0, n)), np.zeros(0), None
     q = z[: model.n_q].reshape(-1, 5)
     settings = PLANE if model.setup.formulation == "plane" else FEATURE
-    cs = detect_contacts(model.patch, q, settings, previous=previous, refresh=refresh)
+    cs = detect_contacts(model.patch, q, settings, previous=previous, refresh=refresh, pressed=pressed)
     J = sp.csr_matrix(gap_jacobian(cs, model.patch, q))
     Jq = J[:, : model.n_q]
     G = sp.hstack([-Jq, sp.csr_matrix((cs.m, n - model.n_q)), -J[:, model.n_q :]], format="csr")
@@ -706,10 +711,7 @@ class _FlexureLevel:
 
     def linearise(self, z: Array, rows: ContactSet | None, refresh: float | None) -> _Linearised:
         Gp, hp, _ = _plate_rows(self.model, z, self.z_plate)
-        if self.model.setup.formulation == "plane":
-            if self.model.patch is not None:
-                rows = drop_stale(self.model.patch, z[: self.model.n_q].reshape(-1, 5), rows, self.pressed)
-        Gc, hc, cs = _contact_rows(self.model, z, rows, refresh)
+        Gc, hc, cs = _contact_rows(self.model, z, rows, refresh, self.pressed)
         merged = cs
         if self.model.setup.formulation == "feature":
             self.history = [*self.history[-(ROW_MEMORY - 1) :], (Gc, hc, cs)]
