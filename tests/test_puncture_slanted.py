@@ -161,27 +161,26 @@ def test_slanted_5x5_arrays_reach_phi_c_verified_and_balanced(name):
 
 
 # Design 866 of the same grid: a 3x3 square array slanted 66.6 deg towards 45 deg, loaded on its
-# diagonal.  Its held-symmetric branch stopped being an equilibrium of the free problem at
-# delta ~ 0.041 (the free QP at the held state moved q by 3e-5, then up to 0.06 L), and the path
-# failed from a held state whose F the exact check refused (2.2456 against 2.1850).
+# diagonal.  Before the held branch was tested against the free problem, the path failed from a held
+# state whose F the exact check refused (2.2456 against 2.1850).  Then its held branch ended at
+# delta ~ 0.041, where a held state stopped being an equilibrium of the free problem (the free QP at it
+# moved q by 3e-5, later up to 0.06 L) after levels that failed there; with the stale pressed planes
+# restarted (increment.md sec. 4) the held levels converge, every held state kept is a free
+# equilibrium, and the branch leaves by an instability at delta = 0.04299.  Both paths give
+# F_c* = 2.116403686 (2e-12 apart).
 UNBALANCED = 866
+UNBALANCED_FC = 2.116403686
 
 
-def test_a_held_branch_ends_where_the_free_problem_no_longer_balances_it():
-    # Independent check: the free increment QP, solved exactly (DAQP) at every held state the path
-    # kept, moves q by at most HELD_FREE_TOL (before: 3e-5 to 0.06 L); and the final F_c is verified
-    # against the exact solution at the failure state.
+def _held_states_are_free_equilibria(setup, result) -> int:
+    """The free increment QP, solved exactly (DAQP) at every held state the path kept, moves q by at
+    most HELD_FREE_TOL: each is an equilibrium without the mirror rows.  Returns how many."""
     from qpscale.certify import solve_exact
     from qpscale.contact.symmetry import map_dofs
     from qpscale.continuation import HELD_FREE_TOL
     from qpscale.experiments.puncture import _load_point, build_model, mirror_through, puncture_path
 
-    setup = fuzz_setup(UNBALANCED)
     point = setup.load_point
-    result = run_puncture(setup)
-    assert result.Fc_check is not None and result.Fc_check.status == "verified"
-    assert result.branch.branched and result.branch.min_eigenvalue is None  # not an instability
-    assert result.branch.delta_branch[1] < 0.05
     patch, K = build_model(setup)
     free = puncture_path(setup, patch, K, _load_point(patch, np.asarray(point)), check=False).level
     M, perm = mirror_through(patch, np.asarray(point))
@@ -193,4 +192,42 @@ def test_a_held_branch_ends_where_the_free_problem_no_longer_balances_it():
         assert exact.certified
         assert np.max(np.abs(exact.x[: state.q.size])) <= HELD_FREE_TOL
         checked += 1
-    assert checked >= 3
+    return checked
+
+
+def test_every_held_state_is_a_free_equilibrium_and_Fc_is_verified():
+    # Independent checks: each held state against the exact free QP, the final F_c against the exact
+    # solution at the failure state, and F_c* against the path whose held branch ended by the free
+    # problem's test (the next test), to the failure search's 1e-6.
+    setup = fuzz_setup(UNBALANCED)
+    result = run_puncture(setup)
+    assert result.Fc_check is not None and result.Fc_check.status == "verified"
+    assert result.branch.branched and result.branch.delta_branch[1] < 0.05
+    assert result.Fc_star == pytest.approx(UNBALANCED_FC, rel=1e-6)
+    assert _held_states_are_free_equilibria(setup, result) >= 3
+
+
+def test_a_held_branch_ends_where_the_free_problem_no_longer_balances_it(monkeypatch):
+    # The free problem's test ends the held branch (``HeldBranchEnds``, puncture.md sec. 4): made to
+    # refuse the first held state past delta = 0.03, the path goes on free from the last state it
+    # accepted (no push: the free level leaves the held state by itself), reaches the branch the
+    # instability leads to, and F_c* is the same to the failure search's 1e-6.
+    import qpscale.continuation as continuation
+
+    original = continuation.Path.free_balanced
+    refused: list[float] = []
+
+    def free_balanced(self, eq):
+        if self.mirror is not None and eq.delta > 0.03 and not refused:
+            refused.append(eq.delta)
+            return False
+        return original(self, eq)
+
+    monkeypatch.setattr(continuation.Path, "free_balanced", free_balanced)
+    setup = fuzz_setup(UNBALANCED)
+    result = run_puncture(setup)
+    assert len(refused) == 1 and result.branch.branched and result.branch.min_eigenvalue is None
+    assert result.branch.delta_branch[1] == pytest.approx(refused[0], rel=1e-12)
+    assert result.Fc_check is not None and result.Fc_check.status == "verified"
+    assert result.Fc_star == pytest.approx(UNBALANCED_FC, rel=1e-6)
+    assert _held_states_are_free_equilibria(setup, result) >= 3
