@@ -94,25 +94,49 @@ class _KKT:
     LDL' factors (qdldl, AMD ordering) kept for the last set met."""
 
     def __init__(self, P: sp.csc_matrix, C: sp.csr_matrix, delta: float) -> None:
-        self.P, self.C, self.delta = P, C, delta
+        self.P, self.C, self.delta = P, sp.csr_matrix(C), delta
         self.key: bytes | None = None
         self.count = 0
+        Pc = sp.coo_matrix(P)
+        self._P = (Pc.row, Pc.col, Pc.data)
+
+    def matrix(self, S: np.ndarray) -> sp.csc_matrix:
+        """``[[P, C_S'], [C_S, -delta I]]`` in CSC, from triplets in ``sp.bmat``'s order (the same
+        arrays, without its per-block checks: 1.2 ms a call, a third of a stall window's solve)."""
+        C, n, k = self.C, self.P.shape[0], len(S)
+        counts = np.diff(C.indptr)[S]
+        starts = C.indptr[S]
+        take = np.repeat(starts - np.r_[0, np.cumsum(counts)[:-1]], counts) + np.arange(counts.sum())
+        i, j, v = np.repeat(np.arange(k), counts), C.indices[take], C.data[take]
+        Pr, Pj, Pv = self._P
+        d = np.arange(n, n + k)
+        rows = np.concatenate([Pr, j, n + i, d])
+        cols = np.concatenate([Pj, n + i, j, d])
+        data = np.concatenate([Pv, v, v, np.full(k, -self.delta)])
+        return sp.csc_matrix((data, (rows, cols)), shape=(n + k, n + k))
 
     def solve(self, S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         import qdldl
 
         key = S.tobytes()
         if key != self.key:
-            CS = self.C[S]
-            k = len(S)
-            self.K = sp.bmat([[self.P, CS.T], [CS, -self.delta * sp.identity(k)]], format="csc")
-            self.solver = qdldl.Solver(self.K)
+            self.K = self.matrix(S)
+            self.solver = qdldl.Solver(_upper(self.K), upper=True)
             self.key = key
             self.count += 1
         sol = self.solver.solve(rhs)
         for _ in range(REFINE):
             sol = sol + self.solver.solve(rhs - self.K @ sol)
         return sol
+
+
+def _upper(M: sp.csc_matrix) -> sp.csc_matrix:
+    """The upper triangle of ``M`` (CSC), entries in their order: what qdldl takes with
+    ``upper=True`` (given the whole matrix, it calls ``scipy.sparse.triu``, 0.4 ms)."""
+    col = np.repeat(np.arange(M.shape[1]), np.diff(M.indptr))
+    keep = M.indices <= col
+    indptr = np.r_[0, np.cumsum(np.bincount(col[keep], minlength=M.shape[1]))]
+    return sp.csc_matrix((M.data[keep], M.indices[keep], indptr), shape=M.shape)
 
 
 def dense_block(P: sp.spmatrix) -> int:

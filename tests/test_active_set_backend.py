@@ -121,3 +121,26 @@ def test_the_bare_membrane_curve_equals_the_dense_active_set_solvers():
     dense = run_flexure(replace(setup, solver="qpsolvers:daqp"))
     assert np.allclose(exact.force, dense.force, rtol=1e-11, atol=0.0)
     assert exact.Cf_star == pytest.approx(dense.Cf_star, rel=1e-11)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_kkt_matrix_is_scipys_block_assembly_entry_for_entry(seed):
+    # ``_KKT.matrix`` builds [[P, C_S'], [C_S, -delta I]] from triplets in ``sp.bmat``'s order
+    # instead of calling it; ``_upper`` is ``sp.triu`` without its checks.  The factorisation sees
+    # the same arrays either way, so the answers are the same to the bit: compared exactly here
+    # (indptr, indices and data), on random sparse P and C with rows in any order, one row repeated.
+    rng = np.random.default_rng(seed)
+    n, m = int(rng.integers(5, 200)), int(rng.integers(1, 300))
+    R = sp.random(n, n, density=0.05, random_state=seed, format="csc")
+    P = sp.csc_matrix(R + R.T + sp.identity(n))
+    C = sp.random(m, n, density=0.04, random_state=seed + 10, format="csr")
+    S = rng.permutation(m)[: int(rng.integers(1, m + 1))]
+    S = np.r_[S, S[:1]]
+    kkt = active_set._KKT(P, C, 1e-3)
+    ours = kkt.matrix(S)
+    CS = C[S]
+    ref = sp.bmat([[P, CS.T], [CS, -1e-3 * sp.identity(len(S))]], format="csc")
+    for a, b in ((ours, ref), (active_set._upper(ours), sp.triu(ref, format="csc"))):
+        assert np.array_equal(a.indptr, b.indptr)
+        assert np.array_equal(a.indices, b.indices)
+        assert np.array_equal(a.data, b.data)
