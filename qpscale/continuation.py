@@ -65,7 +65,10 @@ SNAP_RESOLUTION = 1e-7
 # of the depth below it), not the branch it lands on (5x5 triangle 60/45: F_c* the same to 1e-9),
 # so the last 7 halvings bought nothing but levels.  A landing past phi_c is the failure, and its
 # bracket is refined to ``SNAP_RESOLUTION`` before it is reported.  (A path of twenty snaps can
-# land otherwise: fuzz design 78, puncture.md sec. 2.)
+# land otherwise: fuzz design 78, puncture.md sec. 2.)  So is a loss of stability off a held path
+# (puncture.md sec. 4): on hinged planes its eigenvalue can jump between two values with the
+# state the level converged to, and regula falsi crept (the dart slanted towards 45 deg: 132
+# levels while its kept states advanced by 1.9e-6 L).
 JUMP_RESOLUTION = 1e-5
 # A converged state lies within this many step tolerances of the exact one (the sequential QP
 # stops at |dq| <= step_tol and contracts at a rate of 0.5-0.9): the energy balance's noise floor.
@@ -413,6 +416,7 @@ class Path:
         self.unconfirmed = False  # an instability whose pushes found no lower energy (run)
         self.base_step: float | None = None  # the first run's first step: the step bounds (run)
         self.probe: Equilibrium | None = None  # the origin's linear response (first_step)
+        self.last_branch: Branch | None = None  # the event of the last branch_off
 
     def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
         """The level at depth ``delta`` from ``start`` under the level's rescue policy;
@@ -456,7 +460,12 @@ class Path:
         return self._origin
 
     def branch_off(
-        self, eq: Equilibrium, sv: Stability, sides: tuple[float, ...], resolved: bool = True
+        self,
+        eq: Equilibrium,
+        sv: Stability,
+        sides: tuple[float, ...],
+        resolved: bool = True,
+        record: bool = True,
     ) -> Equilibrium:
         """Push ``eq`` along the unstable mode (each side given), re-solve at the same depth and
         keep the state of lowest energy (it lies on the branch the path takes).
@@ -465,6 +474,8 @@ class Path:
         the two states can resolve (``noise``): a push of 1e-4 L that the plain iteration brings
         back to ``eq`` changes the energy by round-off, and taking that as a branch restarted the
         path from ``eq`` itself and found the same instability again (fuzz design 140, sec. 4).
+        The :class:`Branch` event is kept as ``last_branch`` and, with ``record``, appended to the
+        events (``run`` records it only once it keeps the landing).
         """
         energy = self.energy(eq)
         if resolved:
@@ -482,7 +493,9 @@ class Path:
             if e < energy and (best is None or e < best[0]):
                 best = (e, moved)
         drop = self.energy(eq) - best[0] if best else 0.0
-        self.events.append(Branch(eq.delta, sv.min_eigenvalue, drop))
+        self.last_branch = Branch(eq.delta, sv.min_eigenvalue, drop)
+        if record:
+            self.events.append(self.last_branch)
         return best[1] if best else eq
 
     def breaks_symmetry(self, sv: Stability) -> bool:
@@ -601,8 +614,9 @@ class Path:
 
         A step that releases energy, or ends in a state failing the stability test, is bisected
         (``ceiling``: the depth of the last such step) until the event is located within
-        ``_resolution`` (a jump to ``JUMP_RESOLUTION``, refined to ``SNAP_RESOLUTION`` when its
-        landing passes phi_c; anything else to ``SNAP_RESOLUTION``); after each state kept inside a
+        ``_resolution`` (a jump, and a loss of stability off a held path, to ``JUMP_RESOLUTION``,
+        refined to ``SNAP_RESOLUTION`` when its landing passes phi_c; anything else to
+        ``SNAP_RESOLUTION``); after each state kept inside a
         jump's bracket the ceiling is retested, until a retest reproduces the jump's release; a
         loss of stability is located by regula falsi (Illinois) on the
         smallest eigenvalue instead, which is smooth along the branch (``_split``), and its
@@ -701,7 +715,7 @@ class Path:
                         eq, sv, flagged = follow, sv_follow, False
             if flagged:
                 now = "unstable" if unstable else "snap"
-                if step > _resolution(now, fine) * eq.delta:
+                if step > _resolution(now, fine, self.mirror is not None) * eq.delta:
                     # A jump flagged again from the nearer start of a retest, releasing as much
                     # energy over the shorter step, is a finite jump, neither a leap of the
                     # extrapolated iteration nor the quadrature error at a kink (whose release
@@ -726,7 +740,23 @@ class Path:
                     assert sv is not None
                     if self.breaks_symmetry(sv):
                         raise Bifurcation(states, eq, sv, resume)
-                    landing = self.branch_off(eq, sv, sides=(1.0, -1.0))
+                    landing = self.branch_off(eq, sv, sides=(1.0, -1.0), record=False)
+                    if (
+                        landing is not eq
+                        and self.tilt_of(landing) >= self.phi_c
+                        and step > SNAP_RESOLUTION * eq.delta
+                    ):
+                        # The loss of stability is the failure (sec. 3): located to
+                        # JUMP_RESOLUTION so far, it is located to SNAP_RESOLUTION first.
+                        if ceiling == np.inf:
+                            resume, moved = step, 0
+                        elif kind != "unstable":
+                            pending.append((ceiling, kind))
+                        ceiling, retest, kind, fine = eq.delta, False, "unstable", True
+                        g_ceiling = sv.min_eigenvalue + STABILITY_TOL
+                        continue
+                    assert self.last_branch is not None
+                    self.events.append(self.last_branch)
                 else:
                     landing = self.solve(last, eq.delta, len(states), descent=True).unwrap()
                     if (
@@ -775,7 +805,7 @@ class Path:
                     if ceiling == np.inf:
                         step = resume
                 retest = (g_ceiling is None and not reproduced) or (
-                    ceiling - eq.delta <= _resolution(kind, fine) * eq.delta
+                    ceiling - eq.delta <= _resolution(kind, fine, self.mirror is not None) * eq.delta
                 )
                 if moved == -1 and g_ceiling is not None:
                     g_ceiling /= 2
@@ -939,10 +969,14 @@ def _next_ceiling(pending: list[tuple[float, str]], delta: float) -> tuple[float
     return pending.pop() if pending else (np.inf, "")
 
 
-def _resolution(kind: str, fine: bool) -> float:
+def _resolution(kind: str, fine: bool, held: bool = False) -> float:
     """Fraction of its depth to which a bracket of ``kind`` is located: ``JUMP_RESOLUTION`` for a
-    jump (``snap``) unless its landing passed phi_c (``fine``), else ``SNAP_RESOLUTION``."""
-    return JUMP_RESOLUTION if kind == "snap" and not fine else SNAP_RESOLUTION
+    jump (``snap``) or a loss of stability (``unstable``) unless its landing passed phi_c
+    (``fine``), or, for a loss of stability, the path is held symmetric (``held``: its
+    bifurcation is where the free path starts); else ``SNAP_RESOLUTION``."""
+    if fine or kind not in ("snap", "unstable") or (kind == "unstable" and held):
+        return SNAP_RESOLUTION
+    return JUMP_RESOLUTION
 
 
 def _split(width: float, g_lo: float | None, g_hi: float | None) -> float:

@@ -89,9 +89,72 @@ def test_a_jump_is_located_coarsely_unless_it_is_the_failure():
 
     assert _resolution("snap", fine=False) == JUMP_RESOLUTION
     assert _resolution("snap", fine=True) == SNAP_RESOLUTION
-    assert _resolution("unstable", fine=False) == SNAP_RESOLUTION
+    assert _resolution("unstable", fine=False) == JUMP_RESOLUTION
+    assert _resolution("unstable", fine=True) == SNAP_RESOLUTION
+    assert _resolution("unstable", fine=False, held=True) == SNAP_RESOLUTION
+    assert _resolution("snap", fine=False, held=True) == JUMP_RESOLUTION
     assert _resolution("failed", fine=False) == SNAP_RESOLUTION
     assert SNAP_RESOLUTION < JUMP_RESOLUTION
+
+
+def _unstable_path(delta_0, branch_tilt):
+    """A path whose states lose stability at ``delta_0``, their smallest eigenvalue jumping from
+    +1 to -1 there (as on hinged planes: the dart slanted towards 45 deg, puncture.md sec. 4), so
+    that regula falsi bisects; and whose branch, reached by a push along the mode (the fifth DOF),
+    holds 0.01 less energy and is tilted ``branch_tilt`` (rad) more.  F = delta and E = delta^2 / 2
+    on the first branch, so its energy balance is exact and only the eigenvalue flags a state; the
+    tilt grows as delta / 10."""
+    from qpscale.continuation import Path, PathSettings, StateFunctions
+    from qpscale.increment import Equilibrium
+    from qpscale.level import LevelOutcome, LevelStatus
+    from qpscale.stability import Stability
+
+    mode = np.array([[0.0, 0.0, 0.0, 0.0, 1.0]])
+
+    def state(delta, branched):
+        q = np.array([[delta, 0.0, 0.0, 0.0, 1.0 if branched else 0.0]])
+        return Equilibrium(q, delta, delta, None, np.zeros(0), 1, 0.0)
+
+    def level(start, delta, index, descent=False):
+        return LevelOutcome(LevelStatus.CONVERGED, state(delta, start.q[0, 4] != 0.0))
+
+    def stability(eq):
+        g = 1.0 if eq.q[0, 4] or eq.delta < delta_0 else -1.0
+        return Stability(g, g > 0.0, mode, 0)
+
+    functions = StateFunctions(
+        energy=lambda eq: 0.5 * eq.delta**2 - 0.01 * eq.q[0, 4],
+        force_norm=lambda eq: 1e-3,
+        tilt=lambda eq: eq.delta / 10.0 + (branch_tilt if eq.q[0, 4] else 0.0),
+        stability=stability,
+    )
+    settings = PathSettings(phi_c_deg=13.0, increments=16, max_increments=400, solver="test", check=True)
+    return Path(level, functions, settings, state(0.0, False))
+
+
+@pytest.mark.parametrize("failure", [False, True])
+def test_a_loss_of_stability_is_located_coarsely_unless_it_is_the_failure(failure):
+    # Off a held path a loss of stability whose branch lands below phi_c is located to
+    # JUMP_RESOLUTION of its depth, like a jump (where it lies within that bracket changes only the
+    # start of the landing); one whose landing passes phi_c is the failure, and its bracket is
+    # refined to SNAP_RESOLUTION before the branch is recorded, once.
+    from qpscale.continuation import JUMP_RESOLUTION, SNAP_RESOLUTION, Branch, Failure
+
+    delta_0 = 0.41
+    path = _unstable_path(delta_0, branch_tilt=0.5 if failure else 0.01)
+    states = path.run(step=0.05)
+    branches = [e for e in path.events if isinstance(e, Branch)]
+    assert len(branches) == 1
+    at = branches[0].delta
+    resolution = SNAP_RESOLUTION if failure else JUMP_RESOLUTION
+    assert delta_0 <= at <= delta_0 * (1.0 + resolution)
+    below = max(s.delta for s in states if s.delta < delta_0)
+    assert at - below <= resolution * at
+    if failure:
+        assert isinstance(path.events[-1], Failure)
+        assert states[-1].delta == below
+    else:
+        assert at - below > SNAP_RESOLUTION * at  # not refined further than it needs
 
 
 def test_a_push_that_comes_back_within_the_energies_resolution_is_no_branch():
