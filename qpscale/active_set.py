@@ -101,8 +101,9 @@ class _KKT:
         self._P = (Pc.row, Pc.col, Pc.data)
 
     def matrix(self, S: np.ndarray) -> sp.csc_matrix:
-        """``[[P, C_S'], [C_S, -delta I]]`` in CSC, from triplets in ``sp.bmat``'s order (the same
-        arrays, without its per-block checks: 1.2 ms a call, a third of a stall window's solve)."""
+        """``[[P, C_S'], [C_S, -delta I]]`` in CSC, from triplets in ``sp.bmat``'s order: the same
+        arrays without its per-block checks, which took a third of the stalled levels' exact
+        solves (formulations/increment-qp.md sec. 8)."""
         C, n, k = self.C, self.P.shape[0], len(S)
         counts = np.diff(C.indptr)[S]
         starts = C.indptr[S]
@@ -132,7 +133,8 @@ class _KKT:
 
 def _upper(M: sp.csc_matrix) -> sp.csc_matrix:
     """The upper triangle of ``M`` (CSC), entries in their order: what qdldl takes with
-    ``upper=True`` (given the whole matrix, it calls ``scipy.sparse.triu``, 0.4 ms)."""
+    ``upper=True`` (given the whole matrix, it calls ``scipy.sparse.triu``: the same arrays,
+    slower)."""
     col = np.repeat(np.arange(M.shape[1]), np.diff(M.indptr))
     keep = M.indices <= col
     indptr = np.r_[0, np.cumsum(np.bincount(col[keep], minlength=M.shape[1]))]
