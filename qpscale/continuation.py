@@ -416,7 +416,6 @@ class Path:
         self.unconfirmed = False  # an instability whose pushes found no lower energy (run)
         self.base_step: float | None = None  # the first run's first step: the step bounds (run)
         self.probe: Equilibrium | None = None  # the origin's linear response (first_step)
-        self.last_branch: Branch | None = None  # the event of the last branch_off
 
     def solve(self, start: Equilibrium, delta: float, index: int, descent: bool = False) -> LevelOutcome:
         """The level at depth ``delta`` from ``start`` under the level's rescue policy;
@@ -460,12 +459,7 @@ class Path:
         return self._origin
 
     def branch_off(
-        self,
-        eq: Equilibrium,
-        sv: Stability,
-        sides: tuple[float, ...],
-        resolved: bool = True,
-        record: bool = True,
+        self, eq: Equilibrium, sv: Stability, sides: tuple[float, ...], resolved: bool = True
     ) -> Equilibrium:
         """Push ``eq`` along the unstable mode (each side given), re-solve at the same depth and
         keep the state of lowest energy (it lies on the branch the path takes).
@@ -474,8 +468,7 @@ class Path:
         the two states can resolve (``noise``): a push of 1e-4 L that the plain iteration brings
         back to ``eq`` changes the energy by round-off, and taking that as a branch restarted the
         path from ``eq`` itself and found the same instability again (fuzz design 140, sec. 4).
-        The :class:`Branch` event is kept as ``last_branch`` and, with ``record``, appended to the
-        events (``run`` records it only once it keeps the landing).
+        The caller records the branch (``record_branch``) once it takes the landing.
         """
         energy = self.energy(eq)
         if resolved:
@@ -492,11 +485,15 @@ class Path:
             e = self.energy(moved)
             if e < energy and (best is None or e < best[0]):
                 best = (e, moved)
-        drop = self.energy(eq) - best[0] if best else 0.0
-        self.last_branch = Branch(eq.delta, sv.min_eigenvalue, drop)
-        if record:
-            self.events.append(self.last_branch)
         return best[1] if best else eq
+
+    def record_branch(
+        self, eq: Equilibrium, sv: Stability, landing: Equilibrium, confirmed: bool = True
+    ) -> None:
+        """Record the :class:`Branch` event of ``landing``, taken from the unstable ``eq``: the
+        energy it released (zero when no push lowered the energy and ``landing`` is ``eq``)."""
+        drop = self.energy(eq) - self.energy(landing) if landing is not eq else 0.0
+        self.events.append(Branch(eq.delta, sv.min_eigenvalue, drop, confirmed))
 
     def breaks_symmetry(self, sv: Stability) -> bool:
         """On a symmetric path: the unstable mode is mostly antisymmetric (a bifurcation off the
@@ -740,39 +737,26 @@ class Path:
                     assert sv is not None
                     if self.breaks_symmetry(sv):
                         raise Bifurcation(states, eq, sv, resume)
-                    landing = self.branch_off(eq, sv, sides=(1.0, -1.0), record=False)
-                    if (
-                        landing is not eq
-                        and self.tilt_of(landing) >= self.phi_c
-                        and step > SNAP_RESOLUTION * eq.delta
-                    ):
-                        # The loss of stability is the failure (sec. 3): located to
-                        # JUMP_RESOLUTION so far, it is located to SNAP_RESOLUTION first.
-                        if ceiling == np.inf:
-                            resume, moved = step, 0
-                        elif kind != "unstable":
-                            pending.append((ceiling, kind))
-                        ceiling, retest, kind, fine = eq.delta, False, "unstable", True
-                        g_ceiling = sv.min_eigenvalue + STABILITY_TOL
-                        continue
-                    assert self.last_branch is not None
-                    self.events.append(self.last_branch)
+                    landing = self.branch_off(eq, sv, sides=(1.0, -1.0))
+                    left = landing is not eq
                 else:
                     landing = self.solve(last, eq.delta, len(states), descent=True).unwrap()
-                    if (
-                        self.tilt_of(landing) >= self.phi_c
-                        and self.snapped(last, landing)
-                        and step > SNAP_RESOLUTION * eq.delta
-                    ):
-                        # The jump is the failure (sec. 3): locate it to SNAP_RESOLUTION first.
-                        if ceiling == np.inf:
-                            resume, moved = step, 0
-                        elif kind != "snap":
-                            pending.append((ceiling, kind))
-                        ceiling, retest, kind, g_ceiling, fine = eq.delta, False, "snap", None, True
-                        continue
+                    left = self.snapped(last, landing)
+                if left and self.tilt_of(landing) >= self.phi_c and step > SNAP_RESOLUTION * eq.delta:
+                    # The jump or the loss of stability is the failure (sec. 3): located to
+                    # JUMP_RESOLUTION so far, it is located to SNAP_RESOLUTION first.
+                    if ceiling == np.inf:
+                        resume, moved = step, 0
+                    elif kind != now:
+                        pending.append((ceiling, kind))
+                    ceiling, retest, kind, fine = eq.delta, False, now, True
+                    g_ceiling = sv.min_eigenvalue + STABILITY_TOL if unstable and sv is not None else None
+                    continue
+                if unstable:
+                    assert sv is not None
+                    self.record_branch(eq, sv, landing, confirmed=left)
                 fine = False
-                if not unstable and not self.snapped(last, landing):
+                if not unstable and not left:
                     # The plain iteration follows the path where the extrapolated one leapt into
                     # another basin: no jump, an ordinary step.
                     eq, ceiling, step = landing, np.inf, resume
@@ -783,10 +767,6 @@ class Path:
                     # and the path goes on without branching, as a continuous step, until a state
                     # passes.
                     self.unconfirmed = True
-                    at = max(i for i, e in enumerate(self.events) if isinstance(e, Branch))
-                    branch = self.events[at]
-                    assert isinstance(branch, Branch)
-                    self.events[at] = replace(branch, confirmed=False)
                     (ceiling, kind), retest, reproduced = _next_ceiling(pending, eq.delta), True, False
                     g_ceiling = None
                     if ceiling == np.inf:
@@ -852,6 +832,7 @@ class Path:
         lo, hi = bifurcation.before[-1], bifurcation.state
         sv = replace(bifurcation.stability, mode=mode)
         on_branch = self.branch_off(hi, sv, sides=(1.0,), resolved=False)
+        self.record_branch(hi, sv, on_branch)
         states = list(bifurcation.before)
         if self.left_branch(lo, on_branch):
             return states
