@@ -410,14 +410,21 @@ class Condensed:
         """Nodal displacements ``(N, 3)`` of the whole membrane for retained values ``z_r``, eq. (7)."""
         return (self.T @ self.generalised(z_r)).reshape(-1, 3)
 
-    @cached_property
-    def K_h(self) -> sp.csr_matrix:
-        """Rows of ``K_g`` of the held DOFs ``(n_held, n_gen)``."""
-        return sp.csr_matrix(self.K_g)[self.held]
+    def _bordered_at(self, dofs: np.ndarray) -> np.ndarray:
+        """Positions of ``dofs`` (retained or held) in ``bordered``, the rows of ``S_bordered``."""
+        order = np.argsort(self.bordered)
+        return order[np.searchsorted(self.bordered, dofs, sorter=order)]
 
     def reactions(self, z_r: Array) -> Array:
-        """Forces ``(len(held),)`` the held DOFs need to stay at zero: ``(K_g g)`` on them, eq. (8b)."""
-        return self.K_h @ self.generalised(z_r)
+        """Forces ``(len(held),)`` the held DOFs need to stay at zero: ``(K_g g)`` on them, eq. (10b).
+
+        Read from the bordered Schur complement, ``S_hr z_r`` (eq. (10c)): the condensed DOFs are in
+        equilibrium, so the force on every bordered DOF is ``S_bordered`` times their values, the
+        held ones zero.  Nothing is solved: eq. (7) and the product with ``K_g`` took 0.09 s a call
+        on the square array's mesh, five calls and 13 % of a curve's time.
+        """
+        h, r = self._bordered_at(self.held), self._bordered_at(self.retained)
+        return self.S_bordered[np.ix_(h, r)] @ np.asarray(z_r, dtype=float)
 
     def released(self, dofs: np.ndarray) -> Condensed:
         """The held ``dofs`` appended to the retained ones, ``S`` bordered by their columns (eq. (8c)).
@@ -428,8 +435,7 @@ class Condensed:
         if not np.all(np.isin(dofs, self.held)) or len(np.unique(dofs)) != len(dofs):
             raise InvalidDesign("dofs", dofs.tolist(), "distinct held DOFs")
         retained = np.r_[self.retained, dofs]
-        order = np.argsort(self.bordered)
-        at = order[np.searchsorted(self.bordered, retained, sorter=order)]
+        at = self._bordered_at(retained)
         held = self.held[~np.isin(self.held, dofs)]
         return replace(self, S=self.S_bordered[np.ix_(at, at)], retained=retained, held=held)
 

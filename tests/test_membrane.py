@@ -179,6 +179,11 @@ def test_release_is_the_condensation_with_those_dofs_retained():
     g = cond.generalised(zr)
     assert np.allclose(cond.reactions(zr), (Kg @ g)[held], rtol=0, atol=1e-10 * scale * 1e-2)
     assert np.max(np.abs((Kg @ g)[cond.condensed])) <= 1e-10 * scale * 1e-2
+    # After the release the reactions are read from other blocks of the bordered S (eq. (10c)):
+    # against K_g g of the released model's own field, the released DOFs now carrying values.
+    zf = np.r_[zr, 3e-3, -2e-3]
+    gf = freed.generalised(zf)
+    assert np.allclose(freed.reactions(zf), (Kg @ gf)[freed.held], rtol=0, atol=1e-10 * scale * 1e-2)
 
 
 def test_model_validation():
