@@ -30,7 +30,7 @@ from ..geometry import Array, rotation_matrices, rotation_matrix, skew, tangent_
 from ..increment import PLANE_PROX, PlaneDamping, _pinned_only, map_labels, pressed_planes
 from ..level import LevelControls, LevelOutcome, LevelStatus, Progress, Step, qp_step
 from ..membrane import Condensed, MembraneMesh, MembraneModel, build_mesh, condense, generalised_map
-from ..qp import IncrementQP, WarmStart
+from ..qp import IncrementQP, WarmStart, block_diagonal
 from ..solvers import DEFAULT_SOLVER
 from ..tiling import Design, Patch, build_patch
 from ..units import compliance_star
@@ -794,7 +794,7 @@ def _membrane_qp(
     n = Gs.shape[1]
     extra = Gc.shape[1] - n
     w = np.full(extra, PLANE_PROX) if plane_weight is None else np.asarray(plane_weight, dtype=float)
-    P = sp.block_diag([S, sp.diags(w)], format="csc") if extra else S
+    P = block_diagonal(S, sp.diags(w, format="csc")) if extra else S
     pad = sp.csr_matrix((Gp.shape[0] + Gs.shape[0], extra))
     G = sp.vstack([sp.hstack([sp.vstack([sp.csr_matrix(Gp), Gs]), pad]), Gc], format="csc")
     return IncrementQP(P, np.zeros(n + extra), G, np.r_[hp, hs, hc])
