@@ -5,7 +5,7 @@ the supports and the plate (section 2), the selective reduced integration that k
 hexahedra free of volumetric locking as nu_m -> 1/2 (section 3, eqs. (2)-(4); the closed form
 (3b) on boxes), the linear tie of bonded top-face nodes to a scale's rigid motion (section 4,
 eq. (5)) and the condensation of the membrane onto the retained degrees of freedom through one
-sparse factorisation (section 5, eqs. (6)-(8d)), with held DOFs, their reactions (eq. (10b)) and
+sparse factorisation (section 5, eqs. (6)-(8d)), with held DOFs, their reactions (eqs. (10b)-(10c)) and
 their release (eq. (8c)) from section 7.  Lengths in L, E_m = 1 unless given.
 """
 
