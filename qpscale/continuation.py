@@ -56,6 +56,13 @@ SNAP_WORK = 1e-3
 # stable: the Hessian is exact (the state's accuracy moves mu by ~1e-7), and a pitchfork's eigenvalue falls
 # through zero at a slope of order 1e-3 per L of depth, so the branch point moves by ~1e-3 L.
 STABILITY_TOL = 1e-6
+# The ceiling of a located loss of stability, re-solved from the last stable state once its bracket
+# is below the resolution, dismisses the instability only if it is stable by at least this margin
+# (mu + STABILITY_TOL, relative like mu): the state's accuracy moves mu by ~1e-7, so a smaller
+# margin is the ceiling's verdict within noise.  Dismissed on such a margin, a path whose
+# eigenvalue falls slowly through the tolerance re-found the instability one step on, every step
+# (a held 3x3 dart path: margins of 1e-9, over 900 increments for 4e-6 L; puncture.md sec. 4).
+VERDICT_NOISE = 1e-7
 # Iterations allowed to the landing of a jump: the plain iteration leaves an unstable state at the
 # rate of its negative eigenvalue, slowly near the branch point.
 LANDING_MAX_ITER = 3000
@@ -617,7 +624,8 @@ class Path:
         jump's bracket the ceiling is retested, until a retest reproduces the jump's release; a
         loss of stability is located by regula falsi (Illinois) on the
         smallest eigenvalue instead, which is smooth along the branch (``_split``), and its
-        ceiling is retested once, when the bracket is below the resolution.  The path then leaves
+        ceiling is retested once, when the bracket is below the resolution (a retest stable by
+        less than ``VERDICT_NOISE`` confirms it).  The path then leaves
         its branch (the jump's landing state, or the unstable state pushed along its mode), and a
         landing past phi_c is the failure (sec. 3-4).
         On a symmetric path (``mirror``) a located instability whose mode breaks the symmetry
@@ -688,6 +696,17 @@ class Path:
             else:
                 eq, landed = outcome.state, False
             sv = self.stability(eq) if self.settings.check and not landed else None
+            if (
+                sv is not None
+                and sv.stable
+                and bracketed
+                and retest
+                and kind == "unstable"
+                and sv.min_eigenvalue + STABILITY_TOL < VERDICT_NOISE
+            ):
+                # The ceiling's retest, stable by less than the verdict resolves: it confirms the
+                # ceiling, and the instability is taken here.
+                sv = replace(sv, stable=False)
             unstable = sv is not None and not sv.stable and not self.unconfirmed
             flagged = unstable or (self.settings.conservative and not landed and self.snapped(last, eq))
             if flagged and not unstable and ceiling == np.inf:
