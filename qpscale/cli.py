@@ -117,7 +117,9 @@ def usage_error_line(exc: Any) -> str:
     # click says "Invalid value for '--slant': 'x' is not a valid float."; keep the reason only.
     for prefix in (f"Invalid value for '{flag}': ", f"Invalid value for {flag}: ", f"Option '{flag}' "):
         message = message.replace(prefix, "")
-    allowed = RANGES.get(flag)
+    # An option the command does not have gets no range: the one RANGES holds for that name is
+    # another command's (``substrate --rings`` named puncture's).
+    allowed = None if type(exc).__name__ == "NoSuchOption" else RANGES.get(flag)
     return f"error: {flag}: {message.rstrip('.')}" + (f"; allowed: {allowed}" if allowed else "")
 
 

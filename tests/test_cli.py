@@ -70,6 +70,15 @@ def test_bad_input_exits_2_with_one_line(args, flag):
     assert len(lines) == 1 and lines[0].startswith(f"error: {flag}")
 
 
+def test_an_unknown_option_is_named_without_another_commands_range():
+    # --rings is puncture's; substrate has none, and puncture's range appended to the error misled.
+    result = run("substrate", "--rings", "1")
+    assert result.exit_code == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: --rings: No such option")
+    assert "allowed" not in lines[0]
+
+
 @pytest.mark.parametrize(
     "args, start",
     [
