@@ -443,6 +443,51 @@ def test_relaxation_turns_an_expanding_oscillation_into_convergence():
     assert relaxation(1.0, 0.7 * np.ones(3), np.ones(3)) == 1.0
 
 
+def test_the_plain_iteration_extrapolates_a_straight_drift_to_the_fixed_point(monkeypatch):
+    # The plain map x + f(x), f = (M - I)(x - x*), with a slow mode (multiplier 0.998, the plain
+    # iteration near a fold) and a contracting one (0.3): the steps are parallel, each 0.998 of the
+    # last, and the plain iteration needs ln(1e-12 / 2.4e-4) / ln(0.998) = 9,650 of them to reach
+    # the test.  Extrapolated along the drift (increment.md sec. 4c) it reaches the fixed point x*,
+    # an analytic value, within the level's budget of 3,000 (measured 1,817: each doubling of the
+    # step also amplifies the fast mode, whose growth ends the run of parallel steps); without the
+    # extrapolation (DRIFT_MAX = 1) it does not.  Tolerance: the test |f| <= 1e-12 puts x within
+    # 1e-12 / (1 - 0.998) = 5e-10 of x* along the slow mode (measured 6e-10 in the norm).
+    import qpscale.level as level_module
+    from qpscale.level import LevelControls, Step, solve
+
+    Q = np.array([[0.8, -0.6], [0.6, 0.8]])
+    M = Q @ np.diag([0.998, 0.3]) @ Q.T
+    x_star = np.array([0.3, -0.2])
+
+    class Drifting:
+        controls = LevelControls(
+            "fake", 0.1, 0, step_tol=1e-12, penetration_tol=1e-9, max_iter=3000, anderson_depth=0
+        )
+
+        def __init__(self):
+            self.calls = 0
+
+        def linearise(self, x, rows, refresh):
+            return x
+
+        def solve(self, x, tightened):
+            self.calls += 1
+            return Step(answer=np.array(x), dx=(M - np.eye(2)) @ (x - x_star), labels=0)
+
+        def penetration(self, x):
+            return 0.0
+
+        def state(self, x, answer, progress):
+            return x
+
+    drifting = Drifting()
+    outcome = solve(drifting, np.zeros(2))
+    assert outcome.converged and np.linalg.norm(outcome.state - x_star) < 1e-9
+    assert drifting.calls < 2500
+    monkeypatch.setattr(level_module, "DRIFT_MAX", 1.0)
+    assert not solve(Drifting(), np.zeros(2)).converged
+
+
 def test_a_level_whose_plain_iteration_oscillated_reaches_phi_c():
     # Fuzz design 728 (seed 1000): just before a snap, the plain iteration's steps alternated in
     # sign and grew by 1.3 per linearisation, and the path failed with "sequential QP did not

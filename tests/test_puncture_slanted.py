@@ -147,6 +147,27 @@ def test_a_retest_stable_by_less_than_the_verdict_resolves_confirms_the_instabil
     assert runs[12].branch.branched and runs[12].branch.min_eigenvalue <= -STABILITY_TOL
 
 
+# A design of a fuzz at the command line's defaults (3x3, full interaction, every vertex, 16 target
+# increments): a dart chevron slanted 55.6 deg towards 118.4 deg, gap 0.0461 L, t = 1.93 L.  At this
+# vertex a landing drifted in parallel steps of 2-6e-7 L, moved 2.1e-3 L in 2,800 of them and ran
+# out of its 3,000 linearisations under both plane updates, and the command failed.
+DRIFTING = (
+    Design(shape="dart", slant_deg=55.6, slant_dir_deg=118.4, gap=0.0461, thickness=1.93, rings=1),
+    (-3.34063906136325, 0.979460074924777),
+)
+
+
+def test_a_landing_that_drifted_in_parallel_steps_reaches_phi_c():
+    # Extrapolated along its drift (level.drift, increment.md sec. 4c) the landing converges: at the
+    # command line's 16 target increments, measured 143 levels and F_c* = 4.7426492294, which the
+    # 8-increment path (no such landing, with or without the rule) gives to 2e-13.  Independent
+    # checks: F_c against the exact active-set solution of its QP, and the conservation of work.
+    design, point = DRIFTING
+    _reaches_phi_c_verified_and_balanced(
+        PunctureSetup(design=design, load_point=point, increments=16), max_levels=300
+    )
+
+
 def test_an_inner_bracket_returns_to_the_nearest_open_ceiling_above_the_state():
     # Each open ceiling carries its kind: back at an instability's, the regula falsi restarts.
     pending = [(0.5, "snap"), (0.4, "unstable"), (0.3, "snap")]
