@@ -53,7 +53,8 @@ MIN_RELAXATION = 1.0 / 16.0
 # row parallel to the one before (cosine above DRIFT_COS) and of the same size to a factor 2, the
 # step is doubled at each further such step, up to DRIFT_MAX times; a step then shorter than half
 # the last along it (the drift bent or the extrapolation overshot) ends it.  Near a fold the plain
-# iteration's dominant multiplier is 1 - 1e-3 and it moved 2.1e-3 L in 2,800 parallel steps.
+# iteration's dominant multiplier is within 2e-3 of 1: a landing moved 2.1e-3 L in 2,800 parallel
+# steps and ran out of its linearisations.
 DRIFT_COS = 0.999
 DRIFT_RUN = 3
 DRIFT_MAX = 64.0
