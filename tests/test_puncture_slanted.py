@@ -127,7 +127,7 @@ DART_MIRROR = (Design(shape="dart", slant_deg=20.0, slant_dir_deg=270.0, rings=1
 
 def test_a_retest_stable_by_less_than_the_verdict_resolves_confirms_the_instability():
     # At 8 and 32 increments the ceiling's retest is stable by less than VERDICT_NOISE and now
-    # confirms the bifurcation; at 12 increments it is unstable outright, so that path needs no
+    # confirms the bifurcation; at 12 increments it is unstable (by 6e-12), so that path needs no
     # rule.  Independent value: the 12-increment path's F_c (increment-size independence of F_c
     # after a held branch's bifurcation, puncture.md sec. 4).  Measured: 4.5673802762, ...788 and
     # ...796 (8, 32, 12), within 3.5e-9; tolerance 1e-7, the branch point being spread over
@@ -160,7 +160,7 @@ DRIFTING = (
 def test_a_landing_that_drifted_in_parallel_steps_reaches_phi_c():
     # Extrapolated along its drift (level.drift, increment.md sec. 4c) the landing converges: at the
     # command line's 16 target increments, measured 143 levels and F_c* = 4.7426492294, which the
-    # 8-increment path (no such landing, with or without the rule) gives to 2e-13.  Independent
+    # 8-increment path, solved with or without the rule, gives to 2e-13.  Independent
     # checks: F_c against the exact active-set solution of its QP, and the conservation of work.
     design, point = DRIFTING
     _reaches_phi_c_verified_and_balanced(

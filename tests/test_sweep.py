@@ -253,3 +253,22 @@ def test_an_edges_axis_and_a_table_written_before_it_existed(tmp_path):
     local = table.loc[[k for k in table.index if "edges=local" in k][0]]
     clamped = table.loc[old.iloc[0]["key"]]
     assert local["edges"] == "local" and local["Fc_star"] == clamped["Fc_star"]
+
+
+def test_the_command_line_fuzz_file_draws_every_design_kind_at_the_command_lines_settings():
+    # docs/fuzz_command_line.toml (README, "What still fails"): its designs must be what
+    # `qpscale puncture --rings 1` runs, so that a failure there is a failure of the command.
+    from pathlib import Path
+
+    from qpscale.studies.sweep import defaults
+
+    spec = load_spec(Path(__file__).parents[1] / "docs" / "fuzz_command_line.toml")
+    valid = [d for d in spec.designs if not d.invalid]
+    assert len(spec.designs) == 1000 and len(valid) == 374
+    kinds = {(d.params["shape"], d.params["tiling"]) for d in valid}
+    assert len(kinds) == 8  # three shapes in two tilings, the dart and the hexagon in one
+    command = defaults("puncture")
+    fixed = ("interaction", "solver", "formulation", "accuracy", "phi_c_deg", "nu", "probe", "edges")
+    for d in valid:
+        assert d.params["rings"] == 1
+        assert all(d.params[k] == command[k] for k in fixed)
