@@ -61,7 +61,7 @@ STABILITY_TOL = 1e-6
 # (mu + STABILITY_TOL, relative like mu): the state's accuracy moves mu by ~1e-7, so a smaller
 # margin is the ceiling's verdict within noise.  Dismissed on such a margin, a path whose
 # eigenvalue falls slowly through the tolerance re-found the instability one step on, every step
-# (a held 3x3 dart path: margins of 1e-9, over 900 increments for 4e-6 L; puncture.md sec. 4).
+# (a held 3x3 dart path: margins of 1e-9; it advanced 1e-4 L in 640 increments; puncture.md sec. 4).
 VERDICT_NOISE = 1e-7
 # Iterations allowed to the landing of a jump: the plain iteration leaves an unstable state at the
 # rate of its negative eigenvalue, slowly near the branch point.
