@@ -222,12 +222,10 @@ def test_box_assembly_matches_scikit_fem(integration):
     assert abs(K1 - K2).max() < 1e-13 * abs(K2).max()
 
 
-@pytest.mark.parametrize("integration", ["sri", "full"])
-def test_general_hexahedra_assembly_matches_scikit_fem(integration):
-    # The vectorised quadrature of eq. (3) for hexahedra that are not boxes (the fitted mesh, sec. 9d)
-    # against scikit-fem's assembly of the same forms, on a tensor mesh whose inner nodes are moved
-    # at random by up to ~0.1 of an element (every element distorted, none inverted): round-off.
-    from qpscale.membrane import _box_layout, assemble_stiffness, assemble_stiffness_skfem
+def _distorted(integration: str) -> tuple[MembraneModel, MeshHex]:
+    """A tensor mesh whose inner nodes are moved at random by up to ~0.1 of an element (every
+    element distorted, none inverted)."""
+    from qpscale.membrane import _box_layout
 
     model = MembraneModel(length=2.0, width=1.0, height=0.5, nu=0.4999, h=0.34, nz=3, integration=integration)
     mesh = MeshHex.init_tensor(np.linspace(0, 2, 7), np.linspace(0, 1, 5), np.linspace(0, 0.5, 4))
@@ -236,8 +234,45 @@ def test_general_hexahedra_assembly_matches_scikit_fem(integration):
     p[:, inner] += 0.02 * np.random.default_rng(0).standard_normal((3, int(inner.sum())))
     mesh = MeshHex(p, mesh.t)
     assert _box_layout(mesh) is None
+    return model, mesh
+
+
+def test_general_hexahedra_assembly_matches_scikit_fem_with_the_full_rule():
+    # The vectorised quadrature of eq. (3) for hexahedra that are not boxes (the fitted mesh, sec. 9d)
+    # against scikit-fem's assembly of the same forms: round-off.
+    from qpscale.membrane import assemble_stiffness, assemble_stiffness_skfem
+
+    model, mesh = _distorted("full")
     K1, K2 = assemble_stiffness(model, mesh), assemble_stiffness_skfem(model, mesh)
     assert abs(K1 - K2).max() < 1e-13 * abs(K2).max()
+
+
+def test_general_hexahedra_assembly_is_the_closed_form_on_boxes():
+    # The mean dilatation of eq. (3c) is the centre point's divergence on a box: the general path
+    # on a graded tensor mesh equals the closed form of eq. (3b) to round-off.
+    from qpscale.membrane import _assemble_boxes, _assemble_hexahedra, _box_layout
+
+    model = MembraneModel(length=3.0, width=2.0, height=1.0, nu=0.45, h=0.5, nz=2)
+    mesh = build_mesh(model, xbreaks=(0.3,), yfine=(0.2475, 0.2525))
+    K1, K2 = _assemble_hexahedra(model, mesh), _assemble_boxes(model, mesh, *_box_layout(mesh))
+    assert abs(K1 - K2).max() < 1e-13 * abs(K2).max()
+
+
+def test_mean_dilatation_passes_the_patch_test_on_distorted_hexahedra():
+    # A uniform dilatation u = e x: the exact stress is a pressure, so the inner nodes carry no
+    # force.  The mean dilatation (eq. (3c)) integrates each divergence row exactly and passes;
+    # the centre point alone (scikit-fem's reduced rule here) does not on distorted elements.
+    from qpscale.membrane import assemble_stiffness, assemble_stiffness_skfem
+
+    model, mesh = _distorted("sri")
+    xyz = mesh.p.T
+    u = (1e-2 * xyz).ravel()
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    inner = np.all((xyz > lo + 1e-9) & (xyz < hi - 1e-9), axis=1)
+    f = (assemble_stiffness(model, mesh) @ u).reshape(-1, 3)
+    assert np.abs(f[inner]).max() < 1e-10 * np.abs(f).max()
+    f_centre = (assemble_stiffness_skfem(model, mesh) @ u).reshape(-1, 3)
+    assert np.abs(f_centre[inner]).max() > 1e-3 * np.abs(f_centre).max()
 
 
 def test_condensed_displacement_matches_a_direct_solve_with_pins_and_ties():
