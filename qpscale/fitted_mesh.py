@@ -110,7 +110,7 @@ def _rings(P: list[Array], half: tuple[float, float], axis: int, gap: float):
             if (
                 core.is_valid
                 and core.area > 0
-                and Polygon(p).contains(core)
+                and Polygon(p).buffer(1e-9, join_style="mitre").contains(core)
                 and np.all(np.sum(Eq * E, axis=1) > 0)
             ):
                 break

@@ -126,6 +126,39 @@ def test_extruded_hexahedra_have_positive_volume(triangles):
     assert one.assemble(Basis(mesh, ElementHex1(), intorder=2)) == pytest.approx(150.0, rel=1e-10)
 
 
+@pytest.mark.parametrize(
+    "shape,tiling,load_line,mode",
+    [
+        ("hexagon", "honeycomb", "x", "isolated"),
+        ("hexagon", "honeycomb", "x", "scaled"),
+        ("trapezoid", "arrayed", "y", "scaled"),
+    ],
+)
+def test_every_hinge_edge_inside_the_membrane_gets_its_full_ring(shape, tiling, load_line, mode):
+    # A footprint whose hinge edges neighbour edges without a ring (the honeycomb along x: four of
+    # six) keeps a core that shares those edges; the check that the core lies inside the
+    # footprint once failed on the round-off of that shared boundary, and the width was halved
+    # down to no ring at all (the isolated hexagon had none, the array 28 of 92).  Every hinge
+    # edge off the rim now has a ring of RING_WIDTH unless its footprint is too narrow for it.
+    from qpscale.fitted_mesh import RING_WIDTH, _ccw, _rings
+
+    setup = FlexureSetup(design=Design(shape=shape, tiling=tiling), mode=mode, load_line=load_line)
+    patch = kept_scales(setup)
+    half = (5.0, 5.0)
+    P = [_ccw(np.asarray(b, dtype=float)) for b in patch.base]
+    rings, _ = _rings(P, half, setup.axis, patch.design.gap)
+    expected = 0
+    rect = shapely.box(-5.0, -5.0, 5.0, 5.0)
+    for p in P:
+        clip = shapely.Polygon(p).intersection(rect)
+        if clip.area < 1e-9 or not np.isclose(clip.area, shapely.Polygon(p).area):
+            continue  # clipped by the rim: its edges are counted by the footprint's own test
+        E = np.roll(p, -1, axis=0) - p
+        expected += int(np.sum(np.abs(E[:, 1 - setup.axis]) > 1e-9 * np.linalg.norm(E, axis=1)))
+    whole = [r for r in rings if r[4] == RING_WIDTH]
+    assert len(whole) >= expected > 0
+
+
 def test_odd_gap_elements_are_refused():
     setup = FlexureSetup(design=Design(shape="square", tiling="arrayed"), gap_elements=3)
     with pytest.raises(ValueError, match="gap_elements"):
