@@ -31,7 +31,7 @@ from skfem.io.meshio import from_meshio
 
 from .errors import InvalidDesign
 from .experiments.flexure import FlexureSetup, mesh_membrane
-from .membrane import MembraneMesh, layers
+from .membrane import MembraneMesh, Slaves, graded_axis, layers
 from .tiling import Patch
 
 Array = np.ndarray
@@ -41,6 +41,9 @@ Array = np.ndarray
 RING_WIDTH = 0.25
 #: Half-width of the band of lines beside each roller axis, in L (the rows' zone is 0.2 L wide).
 ROLLER_BAND = 0.2
+#: Depth of the fitted slab under the top face, in L (``fitted_mesh``): below the first layer level
+#: at least this deep the membrane is a tensor slab (membrane.md sec. 9e).
+SLAB_DEPTH = 0.3
 
 
 def _ccw(P: Array) -> Array:
@@ -354,20 +357,48 @@ def fitted_quads(
     return xy[used], renumber[q]
 
 
-def extrude(xy: Array, quads: Array, z: Array) -> MeshHex:
-    """Hexahedra stacked over counter-clockwise quadrilaterals at the levels ``z``."""
+def _stacked(xy: Array, quads: Array, z: Array) -> tuple[Array, Array]:
+    """Points and VTK hexahedra (a quad's four corners, then the four above them) stacked over
+    counter-clockwise quadrilaterals at the levels ``z``."""
     n2 = len(xy)
     p = np.column_stack([np.tile(xy, (len(z), 1)), np.repeat(z, n2)])
-    # VTK's hexahedron (a quad's four corners, then the four above them), converted to
-    # scikit-fem's corner order by its meshio reader.
     cells = np.concatenate(
         [np.column_stack([quads + k * n2, quads + (k + 1) * n2]) for k in range(len(z) - 1)]
     )
+    return p, cells
+
+
+def extrude(xy: Array, quads: Array, z: Array) -> MeshHex:
+    """Hexahedra stacked over counter-clockwise quadrilaterals at the levels ``z`` (converted to
+    scikit-fem's corner order by its meshio reader)."""
+    p, cells = _stacked(xy, quads, z)
     return from_meshio(meshio.Mesh(p, [("hexahedron", cells)]))
 
 
-def fitted_mesh(setup: FlexureSetup, patch: Patch, along: float = 0.25) -> MembraneMesh:
-    """The fitted mesh of a flexure setup with scales, with the tensor mesh's graded layers."""
+def grid_quads(x: Array, y: Array) -> tuple[Array, Array]:
+    """Nodes ``(nx ny, 2)`` (x fastest) and counter-clockwise quadrilaterals of a tensor grid."""
+    X, Y = np.meshgrid(x, y)
+    nx = len(x)
+    i, j = np.meshgrid(np.arange(nx - 1), np.arange(len(y) - 1))
+    a = (j * nx + i).ravel()
+    return np.column_stack([X.ravel(), Y.ravel()]), np.column_stack([a, a + 1, a + 1 + nx, a + nx])
+
+
+def fitted_mesh(
+    setup: FlexureSetup,
+    patch: Patch,
+    along: float = 0.25,
+    depth: float | None = SLAB_DEPTH,
+    lower_h: float | None = None,
+) -> MembraneMesh:
+    """The fitted mesh of a flexure setup with scales, with the tensor mesh's graded layers.
+
+    ``depth`` (L): the fitted pattern runs down to the first layer level at least this far below
+    the top face only; below it the membrane is a tensor slab (lines graded towards the roller
+    lines as in the tensor mesh, ``lower_h`` elsewhere, default the membrane's ``h``), and the
+    fitted slab's bottom nodes follow the tensor slab's top face bilinearly (membrane.md sec. 9e).
+    None: the fitted pattern through the whole thickness (sec. 9d).
+    """
     mem = mesh_membrane(setup, patch)
     n = setup.gap_elements if setup.gap_elements is not None else 2
     xy, quads = fitted_quads(
@@ -382,4 +413,135 @@ def fitted_mesh(setup: FlexureSetup, patch: Patch, along: float = 0.25) -> Membr
         span=setup.span,
         axis=setup.axis,
     )
-    return MembraneMesh(mem, extrude(xy, quads, layers(mem)))
+    z = layers(mem)
+    if depth is None:
+        return MembraneMesh(mem, extrude(xy, quads, z))
+    if not 0.0 < depth < mem.height:
+        raise InvalidDesign("depth", depth, f"(0, {mem.height}) L")
+    cut = int(np.flatnonzero(z <= mem.height - depth + 1e-12)[-1])
+    if cut == 0:
+        raise InvalidDesign("depth", depth, "a depth that leaves a layer below the fitted slab")
+    h = mem.h if lower_h is None else lower_h
+    across_size, lengthwise_size = (mem.width, mem.length) if setup.axis == 1 else (mem.length, mem.width)
+    s = setup.span / 2
+    across = graded_axis(
+        -across_size / 2, across_size / 2, h, (0.0,), (-s, s), h_min=setup.contact_h, growth=mem.growth
+    )
+    lengthwise = graded_axis(-lengthwise_size / 2, lengthwise_size / 2, h, (0.0,))
+    gx, gy = (lengthwise, across) if setup.axis == 1 else (across, lengthwise)
+    return MembraneMesh(mem, *slabs(xy, quads, gx, gy, z, cut))
+
+
+def slabs(xy: Array, quads: Array, gx: Array, gy: Array, z: Array, cut: int) -> tuple[MeshHex, Slaves]:
+    """Two slabs that meet at the level ``z[cut]``: below it hexahedra over the tensor grid
+    ``gx x gy``, above it over the quadrilaterals ``(xy, quads)``; the upper slab's bottom nodes
+    follow the lower slab's top face bilinearly (membrane.md eq. (5c))."""
+    grid, cells = grid_quads(gx, gy)
+    p_lo, c_lo = _stacked(grid, cells, z[: cut + 1])
+    p_up, c_up = _stacked(xy, quads, z[cut:])
+    n_lo = len(p_lo)
+    mesh = from_meshio(meshio.Mesh(np.r_[p_lo, p_up], [("hexahedron", np.r_[c_lo, c_up + n_lo])]))
+    W = mortar_weights(xy, quads, gx, gy)
+    top_lo = cut * len(grid)  # the lower slab's top level: node j nx + i of the grid
+    W = sp.hstack([sp.csr_matrix((len(xy), top_lo)), W, sp.csr_matrix((len(xy), len(p_up)))], format="csr")
+    return mesh, Slaves(n_lo + np.arange(len(xy)), W)
+
+
+#: A degree-5 rule on the triangle (Radon's seven points): barycentric coordinates and weights
+#: (summing to 1), for the pieces of ``mortar_weights``.
+_TRI_POINTS = np.array(
+    [[1 / 3, 1 / 3, 1 / 3]]
+    + [list(np.roll([0.059715871789770, 0.470142064105115, 0.470142064105115], k)) for k in range(3)]
+    + [list(np.roll([0.797426985353087, 0.101286507323456, 0.101286507323456], k)) for k in range(3)]
+)
+_TRI_WEIGHTS = np.r_[0.225, [0.132394152788506] * 3, [0.125939180544827] * 3]
+
+
+def _pieces(xy: Array, quads: Array, gx: Array, gy: Array) -> tuple[Array, Array, Array, Array]:
+    """Each quadrilateral cut by the grid's cells: quadrature points ``(p, 2)`` and weights on
+    the pieces (a degree-5 rule on a fan of each convex piece), their element and their cell
+    ``(i, j)``."""
+    X = xy[quads]
+    lo, hi = X.min(axis=1), X.max(axis=1)
+    nx, ny = len(gx) - 1, len(gy) - 1
+    i0 = np.clip(np.searchsorted(gx, lo[:, 0], "right") - 1, 0, nx - 1)
+    i1 = np.clip(np.searchsorted(gx, hi[:, 0], "left") - 1, 0, nx - 1)
+    j0 = np.clip(np.searchsorted(gy, lo[:, 1], "right") - 1, 0, ny - 1)
+    j1 = np.clip(np.searchsorted(gy, hi[:, 1], "left") - 1, 0, ny - 1)
+    ni, nj = i1 - i0 + 1, j1 - j0 + 1
+    e = np.repeat(np.arange(len(quads)), ni * nj)
+    k = np.arange(len(e)) - np.repeat(np.cumsum(ni * nj) - ni * nj, ni * nj)
+    i, j = i0[e] + k % ni[e], j0[e] + k // ni[e]
+    piece = shapely.intersection(shapely.polygons(X)[e], shapely.box(gx[i], gy[j], gx[i + 1], gy[j + 1]))
+    keep = shapely.area(piece) > 1e-14 * shapely.area(shapely.polygons(X))[e]
+    piece, e, i, j = piece[keep], e[keep], i[keep], j[keep]
+    coords, owner = shapely.get_coordinates(piece, return_index=True)
+    count = np.bincount(owner, minlength=len(piece))  # ring points, the first repeated last
+    start = np.cumsum(count) - count
+    fans = count - 3  # triangles (v0, v_k, v_k+1) of a convex piece of count - 1 vertices
+    t_owner = np.repeat(np.arange(len(piece)), fans)
+    t_k = np.arange(len(t_owner)) - np.repeat(np.cumsum(fans) - fans, fans) + 1
+    a, b, c = coords[start[t_owner]], coords[start[t_owner] + t_k], coords[start[t_owner] + t_k + 1]
+    area = 0.5 * np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+    pts = np.einsum("q,tc->tqc", _TRI_POINTS[:, 0], a) + np.einsum("q,tc->tqc", _TRI_POINTS[:, 1], b)
+    pts += np.einsum("q,tc->tqc", _TRI_POINTS[:, 2], c)
+    wts = area[:, None] * _TRI_WEIGHTS[None, :]
+    rep = len(_TRI_WEIGHTS)
+    cells = np.repeat(np.c_[i, j][t_owner], rep, axis=0)
+    return pts.reshape(-1, 2), wts.ravel(), np.repeat(e[t_owner], rep), cells
+
+
+def _reference(X: Array, p: Array) -> tuple[Array, Array]:
+    """Bilinear shape functions ``(p, 4)`` at the points ``p`` of the convex quadrilaterals ``X
+    (p, 4, 2)``: the inverse of the bilinear map by Newton's method from the centre."""
+    sx, sy = np.array([-1.0, 1.0, 1.0, -1.0]), np.array([-1.0, -1.0, 1.0, 1.0])
+    r = np.zeros((len(p), 2))
+    for _ in range(30):
+        N = 0.25 * (1 + r[:, :1] * sx) * (1 + r[:, 1:] * sy)
+        dN = np.stack([0.25 * sx * (1 + r[:, 1:] * sy), 0.25 * sy * (1 + r[:, :1] * sx)], axis=1)
+        res = np.einsum("pk,pkc->pc", N, X) - p
+        J = np.einsum("pdk,pkc->pcd", dN, X)
+        step = np.linalg.solve(J, res[..., None])[..., 0]
+        r -= step
+        if np.abs(step).max() < 1e-14:
+            break
+    N = 0.25 * (1 + r[:, :1] * sx) * (1 + r[:, 1:] * sy)
+    return N, r
+
+
+def mortar_weights(xy: Array, quads: Array, gx: Array, gy: Array) -> sp.csr_matrix:
+    """``W (n_fine, n_grid)``: the fine nodes' displacement from the grid's, eq. (5c).
+
+    The dual mortar projection (biorthogonal basis on the fine side).  Every quadrilateral is cut
+    by the grid's cells and integrated piece by piece (``_pieces``), so the grid's hat functions
+    are polynomials on each piece and integrated exactly.  On each quadrilateral ``psi = A N``
+    with ``A = D M^-1`` (``M`` its mass matrix, ``D`` the diagonal of its row sums, by the same
+    points), so that ``sum psi_f N_f' = delta D_f`` on those points; then ``D_f u_f =
+    int psi_f u_grid``, i.e. ``W = D^-1 int psi N_grid``.  The rows reproduce a field linear in x
+    and y exactly whatever the points (the biorthogonality is the discrete one), and the columns
+    carry every grid node's exact share of a uniform traction (``sum psi = 1``): the two slabs
+    pass the patch test, up to the quadrature of the fine shape functions on the pieces
+    (membrane.md sec. 9e).  Collocating the fine nodes on the grid's bilinear field does not.
+    """
+    pts, w, e, cell = _pieces(xy, quads, gx, gy)
+    N, _ = _reference(xy[quads][e], pts)
+    n_e = len(quads)
+    M = np.zeros((n_e, 4, 4))
+    np.add.at(M, e, w[:, None, None] * N[:, :, None] * N[:, None, :])
+    D = M.sum(axis=2)
+    A = D[:, :, None] * np.linalg.inv(M)
+    psi = np.einsum("pij,pj->pi", A[e], N)
+    nx = len(gx)
+    i, j = cell[:, 0], cell[:, 1]
+    s = (pts[:, 0] - gx[i]) / (gx[i + 1] - gx[i])
+    t = (pts[:, 1] - gy[j]) / (gy[j + 1] - gy[j])
+    a = j * nx + i
+    masters = np.column_stack([a, a + 1, a + 1 + nx, a + nx])
+    Nc = np.column_stack([(1 - s) * (1 - t), s * (1 - t), s * t, (1 - s) * t])
+    vals = w[:, None, None] * psi[:, :, None] * Nc[:, None, :]
+    rows = np.broadcast_to(quads[e][:, :, None], vals.shape)
+    cols = np.broadcast_to(masters[:, None, :], vals.shape)
+    n = len(xy)
+    Mt = sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(n, nx * len(gy)))
+    Dn = np.bincount(quads.ravel(), D.ravel(), minlength=n)
+    return sp.csr_matrix(sp.diags(1.0 / Dn) @ Mt)

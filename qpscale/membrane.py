@@ -444,21 +444,37 @@ class Condensed:
 
 
 def generalised_map(
-    n_nodes: int, ties: list[tuple[np.ndarray, Array, Array]], pinned: np.ndarray
+    n_nodes: int,
+    ties: list[tuple[np.ndarray, Array, Array]],
+    pinned: np.ndarray,
+    slaves: Slaves | None = None,
 ) -> tuple[sp.csr_matrix, np.ndarray]:
     """Map ``T`` from generalised DOFs to the 3N nodal DOFs, eq. (5).
 
-    Generalised DOFs: first the free nodal DOFs (neither tied nor pinned), then 5 per scale in
-    the order of ``ties`` (each ``(nodes, node_xy (k, 2), centroid (2,))``).  Returns ``T`` and,
-    for every nodal DOF, its generalised index (-1 if tied or pinned).
+    Generalised DOFs: first the free nodal DOFs (neither tied, pinned nor slaved), then 5 per
+    scale in the order of ``ties`` (each ``(nodes, node_xy (k, 2), centroid (2,))``).  ``slaves``
+    (the interface of a two-slab mesh, eq. (5c)) follow the free DOFs of their masters.  Returns
+    ``T`` and, for every nodal DOF, its generalised index (-1 if tied, pinned or slaved).
     """
     tied = np.concatenate([node_dofs(t[0]) for t in ties]) if ties else np.zeros(0, int)
     if len(np.unique(tied)) != len(tied):
         raise InvalidDesign("ties", "a node bonded to two scales", "disjoint footprints")
-    free = np.setdiff1d(np.arange(3 * n_nodes), np.r_[tied, pinned].astype(int))
+    slaved = node_dofs(slaves.nodes) if slaves is not None else np.zeros(0, int)
+    if len(np.intersect1d(slaved, tied)):
+        raise InvalidDesign("slaves", "a slaved node bonded to a scale", "nodes below the top face")
+    free = np.setdiff1d(np.arange(3 * n_nodes), np.r_[tied, pinned, slaved].astype(int))
     gen_of = np.full(3 * n_nodes, -1)
     gen_of[free] = np.arange(len(free))
     rows, cols, vals = [free], [np.arange(len(free))], [np.ones(len(free))]
+    if slaves is not None:
+        W = sp.coo_matrix(slaves.weights)
+        for k in range(3):
+            master = gen_of[3 * W.col + k]
+            if (master < 0).any():
+                raise InvalidDesign("slaves", "a master node tied, pinned or slaved", "free masters")
+            rows.append(3 * slaves.nodes[W.row] + k)
+            cols.append(master)
+            vals.append(W.data)
     base = len(free)
     for s, (nodes, xy, centroid) in enumerate(ties):
         Ts = tie_rows(xy, centroid)
@@ -560,7 +576,7 @@ def _fill_reducing_order(
     """
     Tc = sp.csc_matrix(T[:, condensed])
     if not np.all(np.diff(Tc.indptr) == 1):
-        return _amd(Kcc)
+        return _grouped_order(T, Tc, Kcc)
     dof = Tc.indices
     n_nodes = K.shape[0] // 3
     R = sp.kron(sp.identity(n_nodes, format="csr"), np.ones((1, 3)), format="csr")
@@ -568,6 +584,33 @@ def _fill_reducing_order(
     rank = np.empty(n_nodes, dtype=int)
     rank[_nested_dissection(Kn)] = np.arange(n_nodes)
     return np.lexsort((dof % 3, rank[dof // 3]))
+
+
+def _grouped_order(T: sp.csr_matrix, Tc: sp.csc_matrix, Kcc: sp.spmatrix) -> np.ndarray:
+    """Nested dissection of ``K_cc``'s graph with each node's DOFs kept together, where some
+    condensed DOFs also carry other nodes' (a slaved interface, eq. (5c)); AMD if a condensed
+    DOF is no node's own.
+
+    A condensed DOF's node is that of its own row: the nodal DOF it is alone on with weight 1
+    (a slave at a master's position has such a row too; its three DOFs name it together, so the
+    grouping is consistent either way).
+    """
+    alone = np.diff(sp.csr_matrix(T).indptr) == 1
+    own = np.full(Tc.shape[1], -1)
+    for c in range(Tc.shape[1]):
+        r = Tc.indices[Tc.indptr[c] : Tc.indptr[c + 1]]
+        v = Tc.data[Tc.indptr[c] : Tc.indptr[c + 1]]
+        mine = r[alone[r] & (v == 1.0)]
+        if len(mine):
+            own[c] = mine.min() // 3
+    if (own < 0).any():
+        return _amd(Kcc)
+    label, group = np.unique(own, return_inverse=True)
+    P = sp.csr_matrix((np.ones(len(group)), (np.arange(len(group)), group)), shape=(len(group), len(label)))
+    G = P.T @ abs(sp.csr_matrix(Kcc)) @ P
+    rank = np.empty(len(label), dtype=int)
+    rank[_nested_dissection(G)] = np.arange(len(label))
+    return np.lexsort((np.arange(len(group)), rank[group]))
 
 
 #: Largest K_g (generalised DOFs) whose Schur complement is read from the trailing block of its
@@ -672,11 +715,26 @@ def _trailing_schur(Kg: sp.csc_matrix, first: np.ndarray, last: np.ndarray) -> A
 
 
 @dataclass(frozen=True)
+class Slaves:
+    """Nodes whose displacement is a weighted sum of other nodes' (eq. (5c)): ``nodes (k,)`` and
+    ``weights (k, N)`` (sparse; row ``i`` gives slave ``nodes[i]`` from the mesh's N nodes), each
+    row summing to 1."""
+
+    nodes: np.ndarray
+    weights: sp.csr_matrix
+
+
+@dataclass(frozen=True)
 class MembraneMesh:
-    """A meshed membrane with its stiffness: node coordinates and face node sets."""
+    """A meshed membrane with its stiffness: node coordinates and face node sets.
+
+    ``slaves``: a mesh of two slabs that do not share their interface's nodes (the fitted top
+    slab over a tensor one, sec. 9e) ties the upper slab's interface nodes to the lower's face.
+    """
 
     model: MembraneModel
     mesh: MeshHex
+    slaves: Slaves | None = None
 
     @cached_property
     def K(self) -> sp.csr_matrix:

@@ -339,7 +339,7 @@ def build_model(setup: FlexureSetup, mesh: MembraneMesh | None = None) -> Flexur
             taken |= mask
             ties.append((top[mask], xyz[top[mask], :2], patch.centroids[i]))
     pins = _pins(xyz, bottom)
-    T, gen_of = generalised_map(len(xyz), ties, pins)
+    T, gen_of = generalised_map(len(xyz), ties, pins, mm.slaves)
     if setup.supports == "strip":
         sup_nodes = bottom[_in(supports[0], xyz[bottom, :2]) | _in(supports[1], xyz[bottom, :2])]
         rows, gap0 = np.zeros(0, int), np.zeros(0)
