@@ -692,6 +692,7 @@ def flexure(
     formulation: str = "plane",
     roller_radius: float = 0.5,
     top_h: float | None = None,
+    mesh: str = "tensor",
     error: bool = True,
     vtk: str | Path | None = None,
     max_memory_gb: float | None = None,
@@ -724,10 +725,15 @@ def flexure(
         Thickness of the top layer when the layers are graded towards the top face, in L,
         (0, 1.5 / layers]; None: the default (with scales, the top layer is d / 2, membrane.md
         sec. 9c; bare membrane: uniform layers).
+    mesh : {"tensor", "fitted"}
+        The tensor mesh, or the footprint-fitted mesh whose lines follow every gap, oblique ones
+        too (scales only; gmsh, whose library needs the system's OpenGL and X11; formulations/membrane.md
+        secs. 9d-9e).  Its memory and time are estimated from its node count once it is built.
     error : bool
         Estimate the discretisation error of C_f*: the curve is run again on the companion mesh
-        (twice the layers and the elements across each gap, formulations/membrane.md sec. 9c) and
-        ``Cf_star_error`` is the two-level Richardson estimate (about three times the run time).
+        (twice the layers and the elements across each gap, and on the fitted mesh half the size
+        along the gaps; formulations/membrane.md secs. 9c, 9e) and ``Cf_star_error`` is the
+        two-level Richardson estimate (about three times the run time).
     vtk : path or None
         Directory for a ParaView series; created before the run.
     max_memory_gb : float or None
@@ -761,13 +767,18 @@ def flexure(
     vtk_dir = v.output_dir("vtk", vtk) if vtk is not None else None
     nz = max(2, int(round(1.5 / h)))
     top = None if top_h is None else v.real("top_h", top_h, 0.0, 1.5 / nz, lo_open=True, unit="L")
+    kind = v.choice("mesh", mesh, ("tensor", "fitted"))
+    if kind == "fitted" and bare:
+        raise v.conflict("mesh", "bare", "the fitted mesh follows the scales' gaps: use the tensor mesh")
     check = 2 * nz if error else nz  # the companion mesh of the error estimate has twice the layers
-    v.memory(v.flexure_memory_gb(h, check), v.max_memory_gb(max_memory_gb), "mesh_h", h, "the membrane mesh")
-    v.duration(v.flexure_time_s(h, check), v.max_minutes(max_minutes), "mesh_h", h, "the membrane mesh")
+    if kind == "tensor":
+        limit_gb, limit_min = v.max_memory_gb(max_memory_gb), v.max_minutes(max_minutes)
+        v.memory(v.flexure_memory_gb(h, check), limit_gb, "mesh_h", h, "the membrane mesh")
+        v.duration(v.flexure_time_s(h, check), limit_min, "mesh_h", h, "the membrane mesh")
     design = _design(values, DEFAULT_RINGS)
     mode = "bare" if bare else "isolated" if isolated else "scaled"
 
-    from .experiments.flexure import FlexureSetup, compliance_error, refined, run_flexure
+    from .experiments.flexure import FlexureSetup, compliance_error, kept_scales, refined, run_flexure
     from .membrane import MembraneModel
 
     setup = FlexureSetup(
@@ -778,10 +789,22 @@ def flexure(
         solver=backend,
         formulation=form,
         roller_radius=radius,
+        mesh=kind,
     )
+    built = None
+    if kind == "fitted":
+        from .fitted_mesh import fitted_mesh
+
+        if progress:
+            progress("fitted mesh")
+        built = fitted_mesh(setup, kept_scales(setup), along=setup.along)
+        nodes = built.nodes.shape[0]
+        limit_gb, limit_min = v.max_memory_gb(max_memory_gb), v.max_minutes(max_minutes)
+        v.memory(v.fitted_memory_gb(nodes, error), limit_gb, "mesh", kind, "the fitted membrane mesh")
+        v.duration(v.fitted_time_s(nodes, error), limit_min, "mesh", kind, "the fitted membrane mesh")
     if progress:
         progress("curve")
-    result = run_flexure(setup)
+    result = run_flexure(setup, built)
     if progress and error:
         progress("companion mesh (error estimate)")
     fine = run_flexure(refined(setup)) if error else None
@@ -793,6 +816,7 @@ def flexure(
         "curve": {"deflection_star": result.deflection.tolist(), "F_star": result.force.tolist()},
         "wall_s": result.wall_s + (0.0 if fine is None else fine.wall_s),
         "mode": mode,
+        "mesh": kind,
         "shape": None if bare else design.shape,
         "tiling": None if bare else design.tiling,
         "load_line": line,

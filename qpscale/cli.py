@@ -71,6 +71,7 @@ RANGES: dict[str, str] = {
     "--load-line": "{x, y}",
     "--mesh-h": "[0.05, 2] L, within the memory and time limits",
     "--formulation": "{plane, feature}",
+    "--mesh": "{tensor, fitted} (fitted: scales with a gap, gmsh installed)",
     "--edges": "{clamped, local}",
     "--condense": "{auto, on, off}",
     "--roller-radius": "(0, 3.75) L (half the span less the plate's width)",
@@ -594,6 +595,15 @@ def flexure(
     top_h: float | None = typer.Option(
         None, "--top-h", help=_help("--top-h", "Grade the layers from this thickness at the top face.")
     ),
+    mesh: str = typer.Option(
+        "tensor",
+        "--mesh",
+        help=_help(
+            "--mesh",
+            "The tensor mesh, or the footprint-fitted one that follows oblique gaps too "
+            "(gmsh, which needs the system's OpenGL and X11 libraries).",
+        ),
+    ),
     error: bool = typer.Option(
         True,
         "--error/--no-error",
@@ -623,6 +633,7 @@ def flexure(
             formulation=formulation,
             roller_radius=roller_radius,
             top_h=top_h,
+            mesh=mesh,
             error=error,
             vtk=vtk,
             max_memory_gb=max_memory_gb,

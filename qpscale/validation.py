@@ -54,6 +54,7 @@ FLAG_OF: dict[str, str] = {
     "h": "--mesh-h",
     "nz": "--mesh-h",
     "formulation": "--formulation",
+    "mesh": "--mesh",
     "edges": "--edges",
     "condense": "--condense",
     "refinement": "--refinement",
@@ -393,6 +394,24 @@ def flexure_time_s(mesh_h: float, nz: int, length: float = 10.0, width: float = 
     one adds the scales' contact, 2.7 s at h = 0.5 L, i.e. 0.5 ms)."""
     nx, ny = math.ceil(length / mesh_h), math.ceil(width / mesh_h)
     return 1.5e-3 * 3 * (nx + 1) * (ny + 1) * (nz + 1)
+
+
+def fitted_memory_gb(nodes: int, error: bool) -> float:
+    """Estimated peak memory of a flexure run on the fitted mesh of ``nodes`` nodes, GB.
+
+    Measured peaks of the two-slab fitted meshes (membrane.md sec. 9e): 2.1 GB at 62.6k nodes
+    (honeycomb), 3.0 GB at 89k (square array), 3.5 GB at 111k, 7.9 GB at 227k (dart chevron):
+    3.0-3.5e-5 GB a node.  The estimate takes 3.6e-5 and 0.2 GB; the error estimate's companion
+    mesh has about 2.2 times the nodes (half the size along the gaps, twice the layers) and runs
+    after the first curve's condensation is dropped, so its own peak is the run's.
+    """
+    return 0.2 + 3.6e-5 * nodes * (2.2 if error else 1.0)
+
+
+def fitted_time_s(nodes: int, error: bool) -> float:
+    """An upper estimate of a fitted-mesh flexure run's wall time on one core, seconds: 1 ms a
+    node (measured 0.5-0.85 ms), and the companion mesh's 2.2 times as many nodes after it."""
+    return 1.0e-3 * nodes * (3.2 if error else 1.0)
 
 
 def duration(estimate_s: float, limit_min: float, parameter: str, value: object, what: str) -> None:

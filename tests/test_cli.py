@@ -95,6 +95,22 @@ def test_puncture_refuses_a_bad_condense_naming_the_flags(args, start):
     assert len(lines) == 1 and lines[0].startswith(start), lines
 
 
+@pytest.mark.parametrize(
+    "args, start",
+    [
+        (["--mesh", "octree"], "error: --mesh"),
+        (["--mesh", "fitted", "--bare"], "error: --mesh and --bare"),
+    ],
+)
+def test_flexure_refuses_a_bad_mesh_naming_the_flags(args, start):
+    # Outside {tensor, fitted}, and the fitted mesh (which follows the scales' gaps) without scales:
+    # exit 2 before any run, one line.
+    result = run("flexure", *args)
+    assert result.exit_code == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(start), lines
+
+
 @pytest.mark.parametrize("value", ["0", "-150e3"])
 def test_puncture_rejects_nonpositive_substrate_modulus_before_running(value):
     # E_s <= 0 (issue #4's bad input) is refused up front: exit 2, one line naming the flag, and no

@@ -301,6 +301,16 @@ def test_setup_validation():
     for bad in (0, 2.5, 65):
         with pytest.raises(InvalidDesign, match="gap_elements"):
             FlexureSetup(gap_elements=bad)
+    # The fitted mesh follows the scales' gaps: refused without scales or without a gap.
+    with pytest.raises(InvalidDesign, match="mesh"):
+        FlexureSetup(mesh="octree")
+    with pytest.raises(InvalidDesign, match="mesh"):
+        FlexureSetup(mesh="fitted", mode="bare")
+    with pytest.raises(InvalidDesign, match="mesh"):
+        FlexureSetup(mesh="fitted", design=Design(gap=0.0))
+    for bad in (0.0, 1.5):
+        with pytest.raises(InvalidDesign, match="along"):
+            FlexureSetup(mesh="fitted", along=bad)
 
 
 @pytest.mark.slow

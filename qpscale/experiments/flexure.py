@@ -37,6 +37,7 @@ from ..units import compliance_star
 
 MODES = ("scaled", "isolated", "bare")
 SUPPORTS = ("roller", "strip")
+MESHES = ("tensor", "fitted")
 PENETRATION_TOL = 1e-9
 STEP_TOL = 1e-9  # L: largest change of a retained DOF (scale DOFs, support and plate u_z)
 ACCURACY = "high"  # KKT tolerance 1e-9 of each QP
@@ -96,6 +97,11 @@ class FlexureSetup:
         membrane model's ``h_min`` and ``top_h`` as given (the gap is then one element wide).
     solver : str
         QP backend.
+    mesh : {"tensor", "fitted"}
+        The tensor mesh of section 2, or the footprint-fitted mesh (scales with a gap only; gmsh,
+        installed with qpscale; membrane.md secs. 9d-9e) whose lines follow every gap.
+    along : float
+        Fitted mesh: element size along the gaps and the rings beside them, in L.
     """
 
     design: Design = field(default_factory=Design)
@@ -116,8 +122,16 @@ class FlexureSetup:
     grade: bool = True
     gap_elements: int | None = 2
     solver: str = DEFAULT_SOLVER
+    mesh: str = "tensor"
+    along: float = 0.25
 
     def __post_init__(self) -> None:
+        if self.mesh not in MESHES:
+            raise InvalidDesign("mesh", self.mesh, "{" + ", ".join(MESHES) + "}")
+        if self.mesh == "fitted" and (self.mode == "bare" or self.design.gap <= 0.0):
+            raise InvalidDesign("mesh", self.mesh, "'tensor' for the bare membrane or a design without gaps")
+        if not 0.0 < self.along <= 1.0:
+            raise InvalidDesign("along", self.along, "(0, 1] L")
         if self.mode not in MODES:
             raise InvalidDesign("mode", self.mode, "{" + ", ".join(MODES) + "}")
         if self.load_line not in ("x", "y"):
@@ -231,7 +245,8 @@ def _strips(setup: FlexureSetup) -> tuple[Polygon, list[Polygon]]:
 
 
 def _mesh(setup: FlexureSetup, patch: Patch | None) -> MembraneMesh:
-    """Grid lines at the strip edges and at every axis-parallel scale edge (membrane.md sec. 2).
+    """Grid lines at the strip edges and at every axis-parallel scale edge (membrane.md sec. 2);
+    or, with ``setup.mesh == "fitted"``, the footprint-fitted mesh (``fitted_mesh``).
 
     Scale edges parallel to the load line (across which the membrane bends) are graded lines:
     the mesh is refined geometrically towards them, so the free strip between two bonded regions
@@ -240,6 +255,10 @@ def _mesh(setup: FlexureSetup, patch: Patch | None) -> MembraneMesh:
     lines too, from ``contact_h``, so that the contact width under a roller (membrane.md sec. 7)
     and the plate's edge singularity are resolved.
     """
+    if setup.mesh == "fitted" and patch is not None:
+        from ..fitted_mesh import fitted_mesh
+
+        return fitted_mesh(setup, patch, along=setup.along)
     s, wp, ws = setup.span / 2, setup.plate_width / 2, setup.support_width / 2
     xe, ye = _edge_lines(patch) if patch is not None and setup.grade else ((), ())
     mem = mesh_membrane(setup, patch)
@@ -836,12 +855,14 @@ ERROR_ORDER = 1.0
 
 def refined(setup: FlexureSetup) -> FlexureSetup:
     """The companion mesh of the error estimate (membrane.md sec. 9c): twice the layers, twice the
-    elements across each gap (and half an explicit top layer), half the size at the rollers."""
+    elements across each gap (and half an explicit top layer), half the size at the rollers; on
+    the fitted mesh also half the size along the gaps (sec. 9e)."""
     mem = setup.membrane
     top = None if mem.top_h is None else mem.top_h / 2
     n = None if setup.gap_elements is None else 2 * setup.gap_elements
     mem = replace(mem, nz=2 * mem.nz, top_h=top)
-    return replace(setup, membrane=mem, gap_elements=n, contact_h=setup.contact_h / 2)
+    along = setup.along / 2 if setup.mesh == "fitted" else setup.along
+    return replace(setup, membrane=mem, gap_elements=n, contact_h=setup.contact_h / 2, along=along)
 
 
 def compliance_error(coarse: float, fine: float, order: float = ERROR_ORDER) -> tuple[float, float]:
