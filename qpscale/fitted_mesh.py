@@ -264,9 +264,11 @@ def fitted_quads(
 
         surfaces = [s for _, s in gmsh.model.getEntities(2)]
         centre = {s: Point(occ.getCenterOfMass(2, s)[:2]) for s in surfaces}
+        strips_grown = [g.buffer(1e-9) for g in strips]
+        rings_grown = [r[0].buffer(1e-9) for r in rings]
         # Gap strips: n/2 elements across (before subdivision), the same count on both long sides.
         for s in surfaces:
-            if not any(g.buffer(1e-9).contains(centre[s]) for g in strips):
+            if not any(g.contains(centre[s]) for g in strips_grown):
                 continue
             tags, _ = corners(s)
             cs = curves(s)
@@ -285,7 +287,7 @@ def fitted_quads(
             mesh.setRecombine(2, s)
         # Rings: graded across from the edge, the inner side carrying the outer side's nodes.
         for s in surfaces:
-            owner = [r for r in rings if r[0].buffer(1e-9).contains(centre[s])]
+            owner = [r for r, grown in zip(rings, rings_grown) if grown.contains(centre[s])]
             if len(owner) != 1:
                 continue
             _, o, t, nrm, w = owner[0]

@@ -596,15 +596,13 @@ def _grouped_order(T: sp.csr_matrix, Tc: sp.csc_matrix, Kcc: sp.spmatrix) -> np.
     grouping is consistent either way).
     """
     alone = np.diff(sp.csr_matrix(T).indptr) == 1
-    own = np.full(Tc.shape[1], -1)
-    for c in range(Tc.shape[1]):
-        r = Tc.indices[Tc.indptr[c] : Tc.indptr[c + 1]]
-        v = Tc.data[Tc.indptr[c] : Tc.indptr[c + 1]]
-        mine = r[alone[r] & (v == 1.0)]
-        if len(mine):
-            own[c] = mine.min() // 3
-    if (own < 0).any():
+    column = np.repeat(np.arange(Tc.shape[1]), np.diff(Tc.indptr))
+    mine = alone[Tc.indices] & (Tc.data == 1.0)
+    first = np.full(Tc.shape[1], T.shape[0])
+    np.minimum.at(first, column[mine], Tc.indices[mine])
+    if (first == T.shape[0]).any():
         return _amd(Kcc)
+    own = first // 3
     label, group = np.unique(own, return_inverse=True)
     P = sp.csr_matrix((np.ones(len(group)), (np.arange(len(group)), group)), shape=(len(group), len(label)))
     G = P.T @ abs(sp.csr_matrix(Kcc)) @ P
