@@ -208,7 +208,9 @@ def fitted_quads(
     # Sizes before the subdivision, which halves every element: twice the targets, and the ring's
     # growth squared (each element is then split into two equal ones).
     first, along2, ratio = 2 * d / gap_elements, 2 * along, growth**2
-    gmsh.initialize(["-noenv"], readConfigFiles=False)
+    # Not interruptible: gmsh would install a SIGINT handler, which only the main thread may do (a
+    # Dask worker runs its tasks in another one).
+    gmsh.initialize(["-noenv"], readConfigFiles=False, interruptible=False)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("membrane")

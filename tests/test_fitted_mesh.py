@@ -159,6 +159,26 @@ def test_every_hinge_edge_inside_the_membrane_gets_its_full_ring(shape, tiling, 
     assert len(whole) >= expected > 0
 
 
+def test_the_fitted_mesh_builds_outside_the_main_thread():
+    # A Dask worker runs its tasks in a thread of its own; gmsh initialised as interruptible installs
+    # a SIGINT handler, which Python allows the main thread only, and every fitted scene of the
+    # study crashed so ("signal only works in main thread").  Built in another thread, the isolated
+    # triangle's mesh equals the main thread's.
+    import threading
+
+    setup = FlexureSetup(design=Design(shape="triangle", tiling="arrayed"), mode="isolated", mesh="fitted")
+    out: dict[str, np.ndarray] = {}
+
+    def build() -> None:
+        out["p"] = fitted_mesh(setup, kept_scales(setup)).nodes
+
+    worker = threading.Thread(target=build)
+    worker.start()
+    worker.join()
+    assert "p" in out
+    assert np.array_equal(out["p"], fitted_mesh(setup, kept_scales(setup)).nodes)
+
+
 def test_odd_gap_elements_are_refused():
     setup = FlexureSetup(design=Design(shape="square", tiling="arrayed"), gap_elements=3)
     with pytest.raises(ValueError, match="gap_elements"):
