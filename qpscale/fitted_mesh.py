@@ -13,17 +13,21 @@ in the plane, quadrilaterals built by gmsh from
 - unstructured triangles elsewhere (footprint cores, gap junctions, the membrane's rim);
 
 subdivided once (a quadrilateral into four, a triangle into three quadrilaterals), then extruded
-through the thickness with the graded layers of the tensor mesh.  gmsh is an optional dependency
-(the ``fitted`` extra).
+over the graded layers of the tensor mesh down to ``SLAB_DEPTH`` under the top face; below it the
+membrane is a tensor slab, and the fitted slab's bottom nodes follow its top face by the dual
+mortar projection (``mortar_weights``, membrane.md sec. 9e).  gmsh is an optional dependency
+(installed with qpscale; its library loads the system's OpenGL and X11 libraries).
 
-This is a measurement tool for now, not the default: section 9d says what it showed and what it
-costs.
+``qpscale flexure --mesh fitted`` runs it; the tensor mesh stays the default and the study's
+mesh: sections 9d-9e say what the fitted mesh showed, what it costs, and why it is not converged
+along oblique gaps yet.
 """
 
 from __future__ import annotations
 
 import meshio
 import numpy as np
+import scipy.sparse as sp
 import shapely
 from shapely.geometry import Point, Polygon, box
 from skfem import MeshHex
@@ -195,7 +199,12 @@ def fitted_quads(
     try:
         import gmsh
     except (ImportError, OSError) as err:  # pragma: no cover - gmsh absent, or its libraries
-        raise InvalidDesign("mesh", "fitted", "an install with gmsh (pip install 'qpscale[fitted]')") from err
+        raise InvalidDesign(
+            "mesh",
+            "fitted",
+            "gmsh that loads (its library needs the system's OpenGL and X11 libraries, e.g. Debian's "
+            f"libglu1-mesa, libxcursor1, libxft2, libxinerama1: {err})",
+        ) from err
     if gap_elements % 2:
         raise InvalidDesign("gap_elements", gap_elements, "an even number (the quads are subdivided once)")
     d = patch.design.gap

@@ -96,11 +96,29 @@ def _puncture(scene: Scene) -> tuple[dict, dict]:
 QUICK_MESH_H = 1.0
 
 
+#: Element size along the gaps of the study's fitted meshes, in L: the honeycomb's reduction
+#: against its own isolated scale is the same to 0.01 point at 0.5, 0.25 and 0.125
+#: (formulations/membrane.md sec. 9e).
+STUDY_ALONG = 0.5
+
+
+def flexure_mesh(scene: Scene) -> str:
+    """The study's mesh of a flexure scene: the footprint-fitted one where the design has oblique
+    edges (triangle, trapezoid, dart, hexagon), which the tensor mesh cannot follow; the tensor
+    mesh for the bare membrane, the square designs and the quick study (membrane.md sec. 9e)."""
+    from ..experiments.flexure import oblique_edges
+
+    if scene.flex_mode == "bare" or scene.mesh_h >= QUICK_MESH_H or scene.design.gap <= 0.0:
+        return "tensor"
+    return "fitted" if oblique_edges(scene.design) else "tensor"
+
+
 def _flexure(scene: Scene) -> tuple[dict, dict]:
     from ..experiments.flexure import FlexureSetup, run_flexure
     from ..membrane import MembraneModel
 
     nz = max(2, int(round(1.5 / scene.mesh_h)))
+    mesh = flexure_mesh(scene)
     setup = FlexureSetup(
         design=scene.design,
         mode=scene.flex_mode,
@@ -108,12 +126,15 @@ def _flexure(scene: Scene) -> tuple[dict, dict]:
         membrane=MembraneModel(nu=0.5, h=scene.mesh_h, nz=nz),
         increments=scene.increments,
         gap_elements=None if scene.mesh_h >= QUICK_MESH_H else FlexureSetup.gap_elements,
+        mesh=mesh,
+        along=STUDY_ALONG,
     )
     r = run_flexure(setup)
     # The membrane is solved with E_m = 1: forces are in E_m L^2.
     scale_N = E_M_PA * L_M**2
     row = {
         "Cf_star": r.Cf_star,
+        "mesh": mesh,
         "C_f": r.C_f,
         "n_scales": r.n_scales,
         "max_penetration": r.max_penetration,
