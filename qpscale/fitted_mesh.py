@@ -15,12 +15,11 @@ in the plane, quadrilaterals built by gmsh from
 subdivided once (a quadrilateral into four, a triangle into three quadrilaterals), then extruded
 over the graded layers of the tensor mesh down to ``SLAB_DEPTH`` under the top face; below it the
 membrane is a tensor slab, and the fitted slab's bottom nodes follow its top face by the dual
-mortar projection (``mortar_weights``, membrane.md sec. 9e).  gmsh is an optional dependency
-(installed with qpscale; its library loads the system's OpenGL and X11 libraries).
+mortar projection (``mortar_weights``, membrane.md sec. 9e).  gmsh is a dependency of qpscale;
+its library loads the system's OpenGL and X11 libraries.
 
-``qpscale flexure --mesh fitted`` runs it; the tensor mesh stays the default and the study's
-mesh: sections 9d-9e say what the fitted mesh showed, what it costs, and why it is not converged
-along oblique gaps yet.
+``qpscale flexure --mesh fitted`` runs it, and ``qpscale paper`` runs on it every flexure scene
+whose design has oblique edges (sec. 9e: their reductions are converged along the gaps there).
 """
 
 from __future__ import annotations
@@ -409,8 +408,9 @@ def fitted_mesh(
     ``depth`` (L): the fitted pattern runs down to the first layer level at least this far below
     the top face only; below it the membrane is a tensor slab (lines graded towards the roller
     lines as in the tensor mesh, ``lower_h`` elsewhere, default the membrane's ``h``), and the
-    fitted slab's bottom nodes follow the tensor slab's top face bilinearly (membrane.md sec. 9e).
-    None: the fitted pattern through the whole thickness (sec. 9d).
+    fitted slab's bottom nodes follow the tensor slab's top face by the dual mortar projection
+    (``mortar_weights``, membrane.md sec. 9e).  None: the fitted pattern through the whole
+    thickness (sec. 9d).
     """
     mem = mesh_membrane(setup, patch)
     n = setup.gap_elements if setup.gap_elements is not None else 2
@@ -448,7 +448,7 @@ def fitted_mesh(
 def slabs(xy: Array, quads: Array, gx: Array, gy: Array, z: Array, cut: int) -> tuple[MeshHex, Slaves]:
     """Two slabs that meet at the level ``z[cut]``: below it hexahedra over the tensor grid
     ``gx x gy``, above it over the quadrilaterals ``(xy, quads)``; the upper slab's bottom nodes
-    follow the lower slab's top face bilinearly (membrane.md eq. (5c))."""
+    follow the lower slab's top face by ``mortar_weights`` (membrane.md eqs. (5c)-(5e))."""
     grid, cells = grid_quads(gx, gy)
     p_lo, c_lo = _stacked(grid, cells, z[: cut + 1])
     p_up, c_up = _stacked(xy, quads, z[cut:])
