@@ -778,7 +778,14 @@ def flexure(
     design = _design(values, DEFAULT_RINGS)
     mode = "bare" if bare else "isolated" if isolated else "scaled"
 
-    from .experiments.flexure import FlexureSetup, compliance_error, kept_scales, refined, run_flexure
+    from .experiments.flexure import (
+        FlexureSetup,
+        compliance_error,
+        kept_scales,
+        oblique_edges,
+        refined,
+        run_flexure,
+    )
     from .membrane import MembraneModel
 
     setup = FlexureSetup(
@@ -817,6 +824,7 @@ def flexure(
         "wall_s": result.wall_s + (0.0 if fine is None else fine.wall_s),
         "mode": mode,
         "mesh": kind,
+        "oblique_edges": False if bare else oblique_edges(design),
         "shape": None if bare else design.shape,
         "tiling": None if bare else design.tiling,
         "load_line": line,

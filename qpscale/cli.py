@@ -649,6 +649,11 @@ def flexure(
             + (f" ± {_fmt(p['Cf_star_error'], '.2g')}" if p["Cf_star_error"] is not None else "")
             + f", {p['n_scales']} scales, {_fmt(p['wall_s'], '.2f')} s"
         )
+        if p["mesh"] == "tensor" and p["oblique_edges"]:
+            console.print(
+                "note: the tensor mesh does not resolve this design's oblique gaps (reductions up to "
+                "5.5 points low); --mesh fitted does (formulations/membrane.md sec. 9e)"
+            )
 
     finish(report, as_json, summary)
 

@@ -111,6 +111,19 @@ def test_flexure_refuses_a_bad_mesh_naming_the_flags(args, start):
     assert len(lines) == 1 and lines[0].startswith(start), lines
 
 
+@pytest.mark.parametrize("shape, noted", [("triangle", True), ("square", False)])
+def test_flexure_notes_oblique_gaps_the_tensor_mesh_leaves_unresolved(shape, noted):
+    # The triangle's flanks are oblique: on the tensor mesh its gaps are about an element wide, and
+    # the summary says so and names --mesh fitted; the square's gaps are grid lines.  (A coarse
+    # isolated scale: the note depends on the design and the mesh, not on the run.)
+    args = ("flexure", "--shape", shape, "--isolated", "--mesh-h", "1", "--no-error")
+    result = run(*args)
+    assert result.exit_code == 0, result.output
+    assert ("--mesh fitted" in result.stdout) is noted
+    data = json.loads(run(*args, "--json").stdout)
+    assert data["mesh"] == "tensor" and data["oblique_edges"] is noted
+
+
 @pytest.mark.parametrize("value", ["0", "-150e3"])
 def test_puncture_rejects_nonpositive_substrate_modulus_before_running(value):
     # E_s <= 0 (issue #4's bad input) is refused up front: exit 2, one line naming the flag, and no
