@@ -105,7 +105,8 @@ class FlexureSetup:
         The tensor mesh of section 2, or the footprint-fitted mesh (scales with a gap only; gmsh,
         installed with qpscale; membrane.md secs. 9d-9e) whose lines follow every gap.
     along : float
-        Fitted mesh: element size along the gaps and the rings beside them, in L.
+        Fitted mesh: element size along the gaps and the rings beside them, in L (the study's 0.5:
+        the reductions move by tenths of a point to 0.25, membrane.md sec. 9e).
     """
 
     design: Design = field(default_factory=Design)
@@ -127,7 +128,7 @@ class FlexureSetup:
     gap_elements: int | None = 2
     solver: str = DEFAULT_SOLVER
     mesh: str = "tensor"
-    along: float = 0.25
+    along: float = 0.5
 
     def __post_init__(self) -> None:
         if self.mesh not in MESHES:

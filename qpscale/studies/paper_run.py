@@ -96,9 +96,9 @@ def _puncture(scene: Scene) -> tuple[dict, dict]:
 QUICK_MESH_H = 1.0
 
 
-#: Element size along the gaps of the study's fitted meshes, in L: the honeycomb's reduction
-#: against its own isolated scale is the same to 0.01 point at 0.5, 0.25 and 0.125
-#: (formulations/membrane.md sec. 9e).
+#: Element size along the gaps of the study's fitted meshes, in L (``FlexureSetup``'s default): the
+#: honeycomb's reduction against its own isolated scale is the same to 0.01 point at 0.5, 0.25 and
+#: 0.125 (formulations/membrane.md sec. 9e).
 STUDY_ALONG = 0.5
 
 
