@@ -651,8 +651,8 @@ def flexure(
         )
         if p["mesh"] == "tensor" and p["oblique_edges"]:
             console.print(
-                "note: the tensor mesh does not resolve this design's oblique gaps (reductions up to "
-                "5.5 points low); --mesh fitted does (formulations/membrane.md sec. 9e)"
+                "note: the tensor mesh cannot follow this design's oblique edges (its reductions are up "
+                "to 5.5 points low there); --mesh fitted does (formulations/membrane.md sec. 9e)"
             )
 
     finish(report, as_json, summary)
