@@ -771,8 +771,8 @@ def flexure(
     if kind == "fitted" and bare:
         raise v.conflict("mesh", "bare", "the fitted mesh follows the scales' gaps: use the tensor mesh")
     check = 2 * nz if error else nz  # the companion mesh of the error estimate has twice the layers
+    limit_gb, limit_min = v.max_memory_gb(max_memory_gb), v.max_minutes(max_minutes)
     if kind == "tensor":
-        limit_gb, limit_min = v.max_memory_gb(max_memory_gb), v.max_minutes(max_minutes)
         v.memory(v.flexure_memory_gb(h, check), limit_gb, "mesh_h", h, "the membrane mesh")
         v.duration(v.flexure_time_s(h, check), limit_min, "mesh_h", h, "the membrane mesh")
     design = _design(values, DEFAULT_RINGS)
@@ -806,7 +806,6 @@ def flexure(
             progress("fitted mesh")
         built = fitted_mesh(setup, kept_scales(setup), along=setup.along)
         nodes = built.nodes.shape[0]
-        limit_gb, limit_min = v.max_memory_gb(max_memory_gb), v.max_minutes(max_minutes)
         v.memory(v.fitted_memory_gb(nodes, error), limit_gb, "mesh", kind, "the fitted membrane mesh")
         v.duration(v.fitted_time_s(nodes, error), limit_min, "mesh", kind, "the fitted membrane mesh")
     if progress:

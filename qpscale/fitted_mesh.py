@@ -401,13 +401,12 @@ def fitted_mesh(
     patch: Patch,
     along: float = 0.25,
     depth: float | None = SLAB_DEPTH,
-    lower_h: float | None = None,
 ) -> MembraneMesh:
     """The fitted mesh of a flexure setup with scales, with the tensor mesh's graded layers.
 
     ``depth`` (L): the fitted pattern runs down to the first layer level at least this far below
     the top face only; below it the membrane is a tensor slab (lines graded towards the roller
-    lines as in the tensor mesh, ``lower_h`` elsewhere, default the membrane's ``h``), and the
+    lines as in the tensor mesh, the membrane's ``h`` elsewhere), and the
     fitted slab's bottom nodes follow the tensor slab's top face by the dual mortar projection
     (``mortar_weights``, membrane.md sec. 9e).  None: the fitted pattern through the whole
     thickness (sec. 9d).
@@ -434,13 +433,12 @@ def fitted_mesh(
     cut = int(np.flatnonzero(z <= mem.height - depth + 1e-12)[-1])
     if cut == 0:
         raise InvalidDesign("depth", depth, "a depth that leaves a layer below the fitted slab")
-    h = mem.h if lower_h is None else lower_h
     across_size, lengthwise_size = (mem.width, mem.length) if setup.axis == 1 else (mem.length, mem.width)
     s = setup.span / 2
     across = graded_axis(
-        -across_size / 2, across_size / 2, h, (0.0,), (-s, s), h_min=setup.contact_h, growth=mem.growth
+        -across_size / 2, across_size / 2, mem.h, (0.0,), (-s, s), h_min=setup.contact_h, growth=mem.growth
     )
-    lengthwise = graded_axis(-lengthwise_size / 2, lengthwise_size / 2, h, (0.0,))
+    lengthwise = graded_axis(-lengthwise_size / 2, lengthwise_size / 2, mem.h, (0.0,))
     gx, gy = (lengthwise, across) if setup.axis == 1 else (across, lengthwise)
     return MembraneMesh(mem, *slabs(xy, quads, gx, gy, z, cut))
 
@@ -485,8 +483,9 @@ def _pieces(xy: Array, quads: Array, gx: Array, gy: Array) -> tuple[Array, Array
     e = np.repeat(np.arange(len(quads)), ni * nj)
     k = np.arange(len(e)) - np.repeat(np.cumsum(ni * nj) - ni * nj, ni * nj)
     i, j = i0[e] + k % ni[e], j0[e] + k // ni[e]
-    piece = shapely.intersection(shapely.polygons(X)[e], shapely.box(gx[i], gy[j], gx[i + 1], gy[j + 1]))
-    keep = shapely.area(piece) > 1e-14 * shapely.area(shapely.polygons(X))[e]
+    quad = shapely.polygons(X)
+    piece = shapely.intersection(quad[e], shapely.box(gx[i], gy[j], gx[i + 1], gy[j + 1]))
+    keep = shapely.area(piece) > 1e-14 * shapely.area(quad)[e]
     piece, e, i, j = piece[keep], e[keep], i[keep], j[keep]
     coords, owner = shapely.get_coordinates(piece, return_index=True)
     count = np.bincount(owner, minlength=len(piece))  # ring points, the first repeated last
