@@ -145,3 +145,49 @@ def grow_patch(
     widths = [2 * r + 1 for r in seq.rings]
     ext, why_not = extrapolate(widths, seq.values)
     return RingsSequence(tol, seq.rings, seq.values, seq.wall_s, converged, reason, ext, why_not)
+
+
+#: Relative change between the two largest patches below which a sequence counts as converged
+#: (``qpscale puncture --rings auto``'s default tolerance).
+DEFAULT_TOL = 0.005
+
+
+@dataclass(frozen=True)
+class PatchEstimate:
+    """What a fixed sequence of patches says about the skin (formulations/puncture.md sec. 7).
+
+    ``verdict``: ``converged`` (the last change is within ``tol``: ``value`` is the largest patch's,
+    ``error`` that change), ``extrapolated`` (``value`` is F_inf of :func:`extrapolate`, ``error``
+    its error) or ``not converged`` (``value`` is the largest patch's, ``error`` NaN, ``note`` why
+    no limit is claimed).  ``change``: the relative change between the two largest patches.
+    """
+
+    value: float
+    error: float
+    verdict: str
+    change: float
+    note: str = ""
+
+
+def estimate(widths: list[int], values: list[float], tol: float = DEFAULT_TOL) -> PatchEstimate:
+    """The skin's value from the results on patches of ``widths`` scales (ascending, at least two).
+
+    >>> estimate([3, 5, 7], [1.0, 1.2, 1.201]).verdict
+    'converged'
+    >>> n = [3, 5, 7, 9]
+    >>> e = estimate(n, [2.0 - k**-0.8 for k in n])
+    >>> e.verdict, round(e.value, 6)
+    ('extrapolated', 2.0)
+    >>> estimate(n, [1.0, 1.1, 1.05, 1.1]).verdict
+    'not converged'
+    """
+    if len(values) < 2 or len(widths) != len(values):
+        raise ValueError("estimate needs at least two patches and one width per value")
+    last, before = float(values[-1]), float(values[-2])
+    change = abs(last - before) / abs(last)
+    if change <= tol:
+        return PatchEstimate(last, abs(last - before), "converged", change)
+    ext, why = extrapolate(list(widths), list(values))
+    if ext is not None:
+        return PatchEstimate(ext.F_inf, ext.error, "extrapolated", change)
+    return PatchEstimate(last, math.nan, "not converged", change, why)

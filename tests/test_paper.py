@@ -14,7 +14,7 @@ from qpscale.errors import InvalidDesign, SolverFailure
 from qpscale.studies.figures import FIGURES, ashby_points
 from qpscale.studies.paper import add_ratios, load_results, run_paper, run_scenes
 from qpscale.studies.paper_run import directional_rot_stiffness, run_scene
-from qpscale.studies.paper_scenes import Scene, paper_scenes
+from qpscale.studies.paper_scenes import Scene, paper_scenes, patch_scenes
 from qpscale.substrate import isolated_block
 from qpscale.tiling import DESIGNS
 
@@ -36,6 +36,10 @@ def test_full_plan_covers_the_paper():
     slant = [s for s in scenes if s.study == "slant" and s.rings > 0]
     assert {(s.slant_deg, s.slant_dir_deg) for s in slant} == {(60.0, 0.0), (60.0, 45.0), (60.0, 90.0)}
     assert len(slant) == 3 * len(DESIGNS)
+    # The patch-size study: every unslanted design, full interaction, up to 9x9.
+    patch = [s for s in scenes if s.study == "patch"]
+    assert {(s.shape, s.tiling) for s in patch} == set(DESIGNS) and len(patch) == len(DESIGNS)
+    assert {(s.kind, s.rings, s.interaction, s.slant_deg) for s in patch} == {("patch", 4, "full", 0.0)}
 
 
 def test_scene_rejects_bad_input():
@@ -43,6 +47,8 @@ def test_scene_rejects_bad_input():
         Scene("figure99", "puncture")
     with pytest.raises(InvalidDesign, match="slant_deg"):
         Scene("slant", "puncture", slant_deg=95.0)
+    with pytest.raises(InvalidDesign, match="rings.*above 2"):
+        Scene("patch", "patch", rings=2)
 
 
 def test_directional_stiffness_is_invariant_for_the_square():
@@ -165,6 +171,31 @@ def test_ratios_use_the_isolated_scale_of_the_same_geometry():
     assert t.loc[3, "ratio_unslanted"] == pytest.approx(2.5) and t.loc[4, "ratio_unslanted"] == pytest.approx(
         2.0 / 1.2
     )
+    # A patch-size row: its 5x5 and its estimate of the skin over the same isolated scale.
+    patch = {**rows[2], "study": "patch", "kind": "patch", "rings": 4, "Fc_patch": 1.5, "Fc_patch_err": 0.06}
+    t = add_ratios(pd.DataFrame([*rows, patch]))
+    assert t.loc[5, "ratio_iso"] == pytest.approx(4.0) and t.loc[5, "ratio_iso_patch"] == pytest.approx(5.0)
+    assert t.loc[5, "ratio_iso_patch_err"] == pytest.approx(0.2) and np.isnan(t.loc[2, "ratio_iso_patch"])
+
+
+def test_patch_scene_follows_the_paper_patch_worst_vertex_outwards():
+    # The quick study's square array: the 5x5 at every vertex, then its worst vertex (the corner,
+    # by the square's symmetry any of the four) on the 3x3, 5x5 and 7x7 patches, at 6 target
+    # increments.  Independent values: the same patches' F_c* at 16 increments (formulations/
+    # substrate.md sec. 10, increment.md sec. 2c: 1.2250, 1.3104548087, 1.3492391753): the paths are
+    # increment-size independent to 1e-8 (puncture.md sec. 4), so 1e-7 relative.
+    scene = patch_scenes(quick=True)[0]
+    assert (scene.shape, scene.tiling, scene.rings) == ("square", "arrayed", 3)
+    row, data = run_scene(scene)
+    assert row["status"] == "ok", row.get("error")
+    assert data["widths"] == [3, 5, 7]
+    assert data["Fc_star"][1:] == pytest.approx([1.3104548087, 1.3492391753], rel=1e-7)
+    assert data["Fc_star"][0] == pytest.approx(1.2250, abs=1e-4)
+    assert abs(row["load_x"]) == pytest.approx(1.0) and abs(row["load_y"]) == pytest.approx(1.0)
+    assert row["Fc_star"] == data["Fc_star"][1] and row["unverified"] == 0
+    # Still rising by 2.9 % at the last ring, too few patches to fit: no limit is claimed.
+    assert row["patch_verdict"] == "not converged" and row["Fc_patch"] == data["Fc_star"][-1]
+    assert row["patch_change"] == pytest.approx(1 - 1.3104548 / 1.3492392, rel=1e-6)
 
 
 def test_run_paper_small_in_parallel(tmp_path):
@@ -211,6 +242,15 @@ def test_ashby_points_join_puncture_and_flexure():
     assert len(pts) == 2
     assert pts.loc[0, "Cf_star"] == pytest.approx(1.5) and pts.loc[0, "ratio_iso"] == pytest.approx(4.0)
     assert pts.loc[1, "tiling"] == "isolated" and pts.loc[1, "Cf_star"] == pytest.approx(9.0)
+    assert np.isnan(pts.loc[0, "ratio_iso_patch"])
+    # The patch-size study's estimate joins the design's point, beside its 5x5 ratio.
+    patch = {**rows[0], "kind": "patch", "study": "patch", "rings": 4, "ratio_iso_patch": 4.6}
+    patch |= {"ratio_iso_patch_err": 0.1, "patch_verdict": "extrapolated"}
+    pts = ashby_points(pd.DataFrame([*rows, patch]))
+    assert len(pts) == 2 and pts.loc[0, "ratio_iso"] == pytest.approx(4.0)
+    assert (
+        pts.loc[0, "ratio_iso_patch"] == pytest.approx(4.6) and pts.loc[0, "patch_verdict"] == "extrapolated"
+    )
 
 
 def test_cli_paper_json(tmp_path, monkeypatch):
@@ -239,6 +279,7 @@ def test_quick_paper_runs_every_study(tmp_path):
         "slant",
         "flexure_validation",
         "flexure",
+        "patch",
     }
     ok = t[t["status"] == "ok"]
     # Arrays raise the resistance (paper: 4-8x); at least the hexagon, which converges today.
@@ -330,7 +371,12 @@ def test_findings_read_the_table():
             "ratio_iso": np.nan,
         },
     ]
-    f = findings_table(pd.DataFrame(rows)).set_index("paper")["ours"]
+    patch = {**rows[0], "study": "patch", "kind": "patch", "rings": 4, "ratio_iso_patch": 4.9}
+    patch |= {"ratio_iso_patch_err": np.nan, "patch_verdict": "not converged", "patch_change": 0.025}
+    f = findings_table(pd.DataFrame([*rows, patch])).set_index("paper")["ours"]
+    assert f["(not in the paper) the 5x5 patch against larger ones"] == (
+        "5x5 -> larger patches: square arrayed 4.50 -> 4.90 (not converged: 2.5 % at the last ring)"
+    )
     assert f["arrays raise puncture resistance 4 to 8 times"].startswith("F_c/F_c,iso = 4.50 to 6.00")
     assert f["contact with 4 % coupling: barely above the isolated scale"].endswith("no converged scene")
     assert f["failed scenes (status kept in the table)"] == "1"

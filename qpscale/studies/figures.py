@@ -210,25 +210,44 @@ def fig12_compliance(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
     return _save(fig, out, "fig12_compliance")
 
 
+#: Columns of a design's patch-size estimate carried into its Ashby point (empty without one).
+PATCH_COLUMNS = ["ratio_iso_patch", "ratio_iso_patch_err", "patch_verdict"]
+
+
 def ashby_points(table: pd.DataFrame) -> pd.DataFrame:
-    """Designs with both a puncture ratio (full interaction) and C_f* (mean of the two load lines)."""
+    """Designs with both a puncture ratio (full interaction) and C_f* (mean of the two load lines),
+    with the patch-size study's estimate of the ratio where the design has one (``PATCH_COLUMNS``)."""
     keys = ["shape", "tiling", "slant_deg", "slant_dir_deg"]
     punct = _ok(table, kind="puncture", interaction="full")
     punct = punct[(punct["rings"] > 0) & punct["study"].isin(["interaction", "slant"])]
     flex = _ok(table, study="flexure", flex_mode="scaled").groupby(keys, as_index=False)["Cf_star"].mean()
     iso = _ok(table, study="flexure", flex_mode="isolated").groupby("shape", as_index=False)["Cf_star"].mean()
     pts = punct[keys + ["ratio_iso"]].merge(flex, on=keys)
+    patch = _ok(table, kind="patch", interaction="full")
+    patch = patch.reindex(columns=keys + PATCH_COLUMNS).drop_duplicates(keys)
+    pts = pts.merge(patch, on=keys, how="left")
     iso = iso.assign(ratio_iso=1.0, tiling="isolated", slant_deg=0.0, slant_dir_deg=0.0)
     return pd.concat([pts, iso[keys + ["ratio_iso", "Cf_star"]]], ignore_index=True)
 
 
 def fig13_ashby(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
-    """Normalised puncture resistance against normalised flexural compliance."""
+    """Normalised puncture resistance against normalised flexural compliance: the paper's 5x5
+    patch (filled) and, where the patch-size study ran, the skin's estimate (open: converged or
+    extrapolated with its error bar; a triangle: the largest patch, not converged, pointing the way
+    the sequence last moved)."""
     pts = ashby_points(table)
     fig, ax = plt.subplots(figsize=(6, 5))
     for _, r in pts.iterrows():
         iso = r["tiling"] == "isolated"
-        ax.plot(r["Cf_star"], r["ratio_iso"], "s" if iso else "o", color="grey" if iso else None)
+        (dot,) = ax.plot(r["Cf_star"], r["ratio_iso"], "s" if iso else "o", color="grey" if iso else None)
+        big = r.get("ratio_iso_patch", np.nan)
+        if not iso and np.isfinite(big):
+            rising = big > r["ratio_iso"]
+            marker = {"not converged": "^" if rising else "v"}.get(r["patch_verdict"], "o")
+            err = r["ratio_iso_patch_err"] if np.isfinite(r["ratio_iso_patch_err"]) else None
+            x = r["Cf_star"]
+            ax.plot([x, x], [r["ratio_iso"], big], ":", lw=0.8, color=dot.get_color())
+            ax.errorbar(x, big, yerr=err, fmt=marker, mfc="none", color=dot.get_color(), capsize=2)
         slant = "" if r["slant_deg"] == 0 else f" a{r['slant_dir_deg']:g}"
         ax.annotate(
             f"{r['shape']} {r['tiling']}{slant}",
@@ -240,7 +259,7 @@ def fig13_ashby(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
     ax.set(
         xlabel="C_f* (mean of load lines x, y)",
         ylabel="F_c / F_c (isolated, same geometry)",
-        title="Puncture resistance against flexural compliance",
+        title="Puncture resistance against flexural compliance\n(filled: 5x5 patch; open: larger patches)",
     )
     return _save(fig, out, "fig13_ashby")
 

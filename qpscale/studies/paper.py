@@ -125,7 +125,9 @@ def _lookup(table: pd.DataFrame, mask: pd.Series, column: str) -> float:
 
 
 def add_ratios(table: pd.DataFrame) -> pd.DataFrame:
-    """Add ``Fc_iso_star``, ``ratio_iso`` (array / isolated, same geometry) and ``ratio_unslanted``.
+    """Add ``Fc_iso_star``, ``ratio_iso`` (array / isolated, same geometry) and ``ratio_unslanted``;
+    on the patch-size study's rows ``ratio_iso_patch`` and its error ``ratio_iso_patch_err`` too
+    (``Fc_patch`` over the same isolated scale).
 
     Only rows whose status is ok enter a ratio; a missing reference leaves the ratio empty.
     """
@@ -138,13 +140,18 @@ def add_ratios(table: pd.DataFrame) -> pd.DataFrame:
     for _, r in t.iterrows():
         same = (t["shape"] == r["shape"]) & np.isclose(t["slant_deg"], r["slant_deg"])
         same &= np.isclose(t["slant_dir_deg"], r["slant_dir_deg"]) | np.isclose(r["slant_deg"], 0.0)
-        ref_iso.append(_lookup(t, iso & same, "Fc_star") if r["kind"] == "puncture" else np.nan)
+        ref_iso.append(_lookup(t, iso & same, "Fc_star") if r["kind"] != "flexure" else np.nan)
         flat = (t["study"] == "interaction") & (t["tiling"] == r["tiling"]) & (t["interaction"] == "full")
         flat &= (t["shape"] == r["shape"]) & np.isclose(t["slant_deg"], 0.0)
         ref_flat.append(_lookup(t, flat, "Fc_star") if r["study"] == "slant" and r["rings"] > 0 else np.nan)
     t["Fc_iso_star"] = ref_iso
     t["ratio_iso"] = t["Fc_star"] / t["Fc_iso_star"]
     t["ratio_unslanted"] = t["Fc_star"] / pd.Series(ref_flat, index=t.index)
+    if "Fc_patch" in t:
+        # The patch-size study: the skin's estimate over the same isolated scale (with its error).
+        t["ratio_iso_patch"] = t["Fc_patch"] / t["Fc_iso_star"]
+        t["ratio_iso_patch_err"] = t["Fc_patch_err"] / t["Fc_iso_star"]
+        t.loc[t["status"] != "ok", ["ratio_iso_patch", "ratio_iso_patch_err"]] = np.nan
     t.loc[t["status"] != "ok", ["ratio_iso", "ratio_unslanted"]] = np.nan
     return t
 

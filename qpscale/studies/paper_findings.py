@@ -111,6 +111,23 @@ def load_line_effect(t: pd.DataFrame) -> str:
     return f"C_f(load line parallel to slant)/C_f(perpendicular) = {_span(pd.Series(par))}"
 
 
+def patch_size(t: pd.DataFrame) -> str:
+    """The 5x5 ratio against the patch-size study's estimate of the skin's, design by design."""
+    ok = _ok(t)
+    p = ok[ok["kind"] == "patch"] if "kind" in ok else ok.iloc[:0]
+    if not len(p) or "ratio_iso_patch" not in p:
+        return "not run"
+    parts = []
+    for _, r in p.iterrows():
+        big = f"{r['ratio_iso_patch']:.2f}"
+        if r["patch_verdict"] == "extrapolated":
+            big += f" +- {r['ratio_iso_patch_err']:.2f}"
+        elif r["patch_verdict"] == "not converged":
+            big += f" (not converged: {100 * r['patch_change']:.1f} % at the last ring)"
+        parts.append(f"{r['shape']} {r['tiling']} {r['ratio_iso']:.2f} -> {big}")
+    return "5x5 -> larger patches: " + ", ".join(parts)
+
+
 FINDINGS: tuple[tuple[str, str, Callable[[pd.DataFrame], str]], ...] = (
     ("Fig. 4", "isolated: F_c* ~ phi_c K_phi*/delta_c*; dart and hexagon highest", isolated_lever),
     ("Fig. 6a", "arrays raise puncture resistance 4 to 8 times", arrays_raise),
@@ -120,6 +137,7 @@ FINDINGS: tuple[tuple[str, str, Callable[[pd.DataFrame], str]], ...] = (
     ("Fig. 9a", "slant 60 deg roughly doubles F_c", slant_doubles),
     ("Fig. 9a", "square arrayed: alpha_45 = 60 is the best slant", square_slants),
     ("Fig. 13", "dart alpha_0 = 60: about 42 times the isolated scale", dart_slanted),
+    ("Fig. 13", "(not in the paper) the 5x5 patch against larger ones", patch_size),
     ("Fig. 12", "scales cut flexural compliance by 85-93 % against the isolated scale", compliance_drop),
     ("Fig. 12", "load line parallel to the slant: more compliant", load_line_effect),
 )
@@ -129,6 +147,7 @@ def findings_table(table: pd.DataFrame) -> pd.DataFrame:
     """One row per finding: figure, the paper's statement, our number from ``table``."""
     cols = "study kind shape tiling rings interaction flex_mode load_line slant_deg slant_dir_deg".split()
     cols += ["Fc_star", "Fc_rigid_star", "ratio_iso", "ratio_unslanted", "Cf_star"]
+    cols += ["ratio_iso_patch", "ratio_iso_patch_err", "patch_verdict", "patch_change"]
     table = table.reindex(columns=list(dict.fromkeys([*table.columns, *cols])))
     rows = [{"figure": f, "paper": text, "ours": fn(table)} for f, text, fn in FINDINGS]
     failed = int((table["status"] != "ok").sum())

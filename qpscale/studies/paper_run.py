@@ -90,6 +90,52 @@ def _puncture(scene: Scene) -> tuple[dict, dict]:
     return row, data
 
 
+def _patch(scene: Scene) -> tuple[dict, dict]:
+    """The patch-size sequence of one design (formulations/puncture.md sec. 7, "The study's patch
+    sequence"): the paper's patch at every vertex, then its worst vertex on the patches of 1, 2,
+    ..., ``scene.rings`` rings, and what the sequence says about the skin
+    (``patch_convergence.estimate``)."""
+    from dataclasses import replace as replace_design
+
+    from ..experiments.puncture import PunctureSetup, run_puncture
+    from ..patch_convergence import estimate
+    from .paper_scenes import PAPER_RINGS
+
+    def run(rings: int, point: tuple[float, float] | None):
+        design = replace_design(scene.design, rings=rings)
+        setup = PunctureSetup(
+            design=design,
+            interaction=scene.interaction,
+            nu=NU_S,
+            increments=scene.increments,
+            load_point=point,
+        )
+        return run_puncture(setup)
+
+    paper = run(PAPER_RINGS, None)
+    point = (float(paper.load_point[0]), float(paper.load_point[1]))
+    rings = list(range(1, scene.rings + 1))
+    results = {r: paper if r == PAPER_RINGS else run(r, point) for r in rings}
+    values = [float(results[r].Fc_star) for r in rings]
+    widths = [2 * r + 1 for r in rings]
+    est = estimate(widths, values)
+    row = {
+        "Fc_star": float(paper.Fc_star),
+        "load_x": point[0],
+        "load_y": point[1],
+        **{f"Fc_r{r}": v for r, v in zip(rings, values)},
+        "Fc_patch": est.value,
+        "Fc_patch_err": est.error,
+        "patch_verdict": est.verdict,
+        "patch_change": est.change,
+        "patch_note": est.note,
+        "qp_solves": sum(int(x.qp_solves) for x in results.values()),
+        "unverified": sum(x.Fc_check is None or x.Fc_check.status != "verified" for x in results.values()),
+    }
+    data = {"rings": rings, "widths": widths, "Fc_star": values}
+    return row, data
+
+
 # Flexure scenes of the quick and smoke studies (mesh_h 1 L) keep the former one-element gaps and
 # uniform layers: they check the chain in seconds; their covered compliances are several times too
 # low (formulations/membrane.md sec. 9c), which the quick study's figures do not claim otherwise.
@@ -151,6 +197,9 @@ def _flexure(scene: Scene) -> tuple[dict, dict]:
     return row, data
 
 
+#: The run of each kind of scene.
+RUNNERS = {"puncture": _puncture, "flexure": _flexure, "patch": _patch}
+
 #: The clock of a scene's time limit (``timelimit.time_limit``).
 SCENE_CLOCK = "cpu"
 
@@ -165,13 +214,13 @@ def run_scene(scene: Scene, limit_s: float | None = None) -> tuple[dict, dict]:
     fail; ``cpu_s`` records the scene's CPU time beside ``wall_s``).
     """
     row = scene.as_dict()
-    if scene.kind == "puncture":
+    if scene.kind != "flexure":
         row["n_scales"] = scene.design.patch().n_scales
     t0, c0 = time.perf_counter(), time.thread_time()
     data: dict = {}
     try:
         with time_limit(limit_s, clock=SCENE_CLOCK):
-            result, data = _puncture(scene) if scene.kind == "puncture" else _flexure(scene)
+            result, data = RUNNERS[scene.kind](scene)
         row.update(result)
         row["status"] = "ok"
     except TimeLimitReached as exc:

@@ -14,14 +14,17 @@ from dataclasses import asdict, dataclass
 from ..errors import InvalidDesign
 from ..tiling import DESIGNS, TILINGS_OF, Design
 
-KINDS = ("puncture", "flexure")
-STUDIES = ("validation", "isolated", "interaction", "slant", "flexure_validation", "flexure")
+KINDS = ("puncture", "flexure", "patch")
+STUDIES = ("validation", "isolated", "interaction", "slant", "flexure_validation", "flexure", "patch")
 # Slant study of the paper (Fig. 8): 60 deg towards x, the diagonal x = y, and y.
 SLANT_DEG = 60.0
 SLANT_DIRS = (0.0, 45.0, 90.0)
 # The validation scenes of Martini et al. reproduced in the paper's Fig. 3 and Fig. 11.
 VALIDATION_SLANTS = (0.0, 63.4)
 QUICK_DESIGNS = (("square", "arrayed"), ("hexagon", "honeycomb"))
+# The paper's patch (5x5), and the largest patch of the patch-size study (9x9; quick: 7x7).
+PAPER_RINGS = 2
+PATCH_RINGS = {False: 4, True: 3}
 
 
 @dataclass(frozen=True)
@@ -32,9 +35,13 @@ class Scene:
     ----------
     study : str
         One of ``STUDIES``.
-    kind : {"puncture", "flexure"}
+    kind : {"puncture", "flexure", "patch"}
+        ``patch``: the puncture of the paper's patch (``PAPER_RINGS``) at every vertex, then at
+        its worst vertex on the patches of 1, 2, ..., ``rings`` rings (formulations/puncture.md
+        sec. 7, "The study's patch sequence").
     shape, tiling, slant_deg, slant_dir_deg, gap, thickness, rings
-        The design (``Design``); rings = 0 is the isolated scale (puncture only).
+        The design (``Design``); rings = 0 is the isolated scale (puncture only); a patch scene's
+        largest patch, more than ``PAPER_RINGS``.
     interaction : str
         Puncture interaction mode ``full``, ``substrate`` or ``contact`` (paper f = 0.04).
     flex_mode : str
@@ -66,7 +73,9 @@ class Scene:
         if self.study not in STUDIES:
             raise InvalidDesign("study", self.study, "{" + ", ".join(STUDIES) + "}")
         if self.kind not in KINDS:
-            raise InvalidDesign("kind", self.kind, "{puncture, flexure}")
+            raise InvalidDesign("kind", self.kind, "{" + ", ".join(KINDS) + "}")
+        if self.kind == "patch" and not self.rings > PAPER_RINGS:
+            raise InvalidDesign("rings", self.rings, f"integers above {PAPER_RINGS} for a patch scene")
         if self.tiling is None:
             object.__setattr__(self, "tiling", TILINGS_OF.get(self.shape, ("",))[0])
         _ = self.design  # Design validates shape, tiling, slant, gap, thickness and rings
@@ -80,7 +89,7 @@ class Scene:
     @property
     def key(self) -> str:
         """A unique, readable identifier: study/shape-tiling/mode/slant."""
-        mode = self.interaction if self.kind == "puncture" else f"{self.flex_mode}-{self.load_line}"
+        mode = self.interaction if self.kind != "flexure" else f"{self.flex_mode}-{self.load_line}"
         ring = "iso" if self.rings == 0 and self.kind == "puncture" else f"r{self.rings}"
         slant = f"a{self.slant_deg:g}-d{self.slant_dir_deg:g}"
         return f"{self.study}/{self.shape}-{self.tiling}/{ring}/{mode}/{slant}"
@@ -117,6 +126,16 @@ def puncture_scenes(quick: bool) -> list[Scene]:
         for d in dirs
     ]
     return scenes
+
+
+def patch_scenes(quick: bool) -> list[Scene]:
+    """The patch-size study (not in the paper): each unslanted design, full interaction, from 3x3 to
+    9x9 (quick: 7x7) at the worst vertex of the paper's 5x5 patch (formulations/puncture.md sec. 7)."""
+    inc = 6 if quick else 16
+    return [
+        Scene("patch", "patch", shape, tiling, rings=PATCH_RINGS[quick], increments=inc)
+        for shape, tiling in _designs(quick)
+    ]
 
 
 def flexure_scenes(quick: bool) -> list[Scene]:
@@ -164,7 +183,7 @@ def paper_scenes(quick: bool = False) -> list[Scene]:
     >>> len({s.key for s in paper_scenes(quick=True)}) == len(paper_scenes(quick=True))
     True
     """
-    return puncture_scenes(quick) + flexure_scenes(quick)
+    return puncture_scenes(quick) + patch_scenes(quick) + flexure_scenes(quick)
 
 
 def smoke_scenes() -> list[Scene]:
