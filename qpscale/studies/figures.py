@@ -230,13 +230,8 @@ def ashby_points(table: pd.DataFrame) -> pd.DataFrame:
     return pd.concat([pts, iso[keys + ["ratio_iso", "Cf_star"]]], ignore_index=True)
 
 
-def fig13_ashby(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
-    """Normalised puncture resistance against normalised flexural compliance: the paper's 5x5
-    patch (filled) and, where the patch-size study ran, the skin's estimate (open: converged or
-    extrapolated with its error bar; a triangle: the largest patch, not converged, pointing the way
-    the sequence last moved)."""
-    pts = ashby_points(table)
-    fig, ax = plt.subplots(figsize=(6, 5))
+def _ashby_panel(ax, pts: pd.DataFrame, label_size: float) -> None:
+    """The points of ``pts`` on ``ax``: the 5x5 ratio filled, the patch-size estimate beside it."""
     for _, r in pts.iterrows():
         iso = r["tiling"] == "isolated"
         (dot,) = ax.plot(r["Cf_star"], r["ratio_iso"], "s" if iso else "o", color="grey" if iso else None)
@@ -252,15 +247,33 @@ def fig13_ashby(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
         ax.annotate(
             f"{r['shape']} {r['tiling']}{slant}",
             (r["Cf_star"], r["ratio_iso"]),
-            fontsize=6,
+            fontsize=label_size,
             xytext=(3, 3),
             textcoords="offset points",
         )
+
+
+def fig13_ashby(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
+    """Normalised puncture resistance against normalised flexural compliance: (a) every design on
+    the paper's 5x5 patch (filled); (b) the unslanted arrays, with the patch-size study's estimate of
+    the skin beside each (open circle: converged or extrapolated, with its error bar; a triangle:
+    the largest patch, not converged, pointing the way the sequence last moved)."""
+    pts = ashby_points(table)
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 5))
+    _ashby_panel(ax, pts, 6)
     ax.set(
         xlabel="C_f* (mean of load lines x, y)",
         ylabel="F_c / F_c (isolated, same geometry)",
-        title="Puncture resistance against flexural compliance\n(filled: 5x5 patch; open: larger patches)",
+        title="(a) Puncture resistance against flexural compliance",
     )
+    flat = pts[(pts["tiling"] != "isolated") & (pts["slant_deg"] == 0.0)]
+    _ashby_panel(bx, flat, 7)
+    bx.set(
+        xlabel="C_f* (mean of load lines x, y)",
+        ylabel="F_c / F_c (isolated, same geometry)",
+        title="(b) Unslanted arrays: 5x5 (filled) and larger patches (open)",
+    )
+    fig.tight_layout()
     return _save(fig, out, "fig13_ashby")
 
 
