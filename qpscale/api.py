@@ -433,7 +433,9 @@ def puncture(
     L_mm : float or None
         L in millimetres, (0, 1e6] (default 2), with ``E_s`` only.
     vtk : path or None
-        Directory for a ParaView series (.pvd + one .vtu per state); created before the run.
+        Directory for a ParaView series (.pvd + one .vtu per state); created before the run.  Its
+        contact forces are the least-norm member of each state's multiplier set
+        (``experiments.puncture.reported_forces``).
     max_memory_gb : float or None
         Refuse a scene whose estimated memory exceeds this (default ``$QPSCALE_MAX_MEMORY_GB`` or 4).
     max_minutes : float or None

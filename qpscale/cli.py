@@ -501,7 +501,12 @@ def puncture(
     L_mm: float | None = typer.Option(
         None, "--L-mm", help=_help("--L-mm", "L in millimetres, with --E-s (default 2).")
     ),
-    vtk: Path | None = typer.Option(None, "--vtk", help="Write a ParaView series (.pvd + .vtu) to DIR."),
+    vtk: Path | None = typer.Option(
+        None,
+        "--vtk",
+        help="Write a ParaView series (.pvd + .vtu) to DIR; the contact forces are the least-norm member"
+        " of each state's multiplier set, the same from every backend (formulations/stability.md eq. (8c)).",
+    ),
     max_memory_gb: float | None = MemoryOpt,
     max_minutes: float | None = MinutesOpt,
     as_json: bool = JsonOpt,

@@ -110,10 +110,18 @@ def write_series(
 
 
 def write_puncture_series(result: object, directory: str | Path) -> Path:
-    """The puncture path as a ParaView series; the time value is the puncture depth w* (in L)."""
-    patch = result.setup.design.patch()  # type: ignore[attr-defined]
+    """The puncture path as a ParaView series; the time value is the puncture depth w* (in L).
+
+    With separating planes the contact forces are the stated rule's, the least-norm member of each
+    state's multiplier set (formulations/stability.md sec. 7, "The reported forces"), the same from
+    every backend; with feature rows or the penalty baseline, the path's own."""
+    from .experiments.puncture import reported_forces
+
+    setup = result.setup  # type: ignore[attr-defined]
+    patch = setup.design.patch()
     states = result.states  # type: ignore[attr-defined]
-    frames = [
-        {"scales": scales_mesh(patch, s.q), "contacts": contacts_mesh(s.contacts, s.lam)} for s in states
-    ]
+    frames = []
+    for s in states:
+        cs, lam = reported_forces(setup, s, result.load_point)  # type: ignore[attr-defined]
+        frames.append({"scales": scales_mesh(patch, s.q), "contacts": contacts_mesh(cs, lam)})
     return write_series(directory, "puncture", frames, [s.delta for s in states])

@@ -219,6 +219,39 @@ def multiplier_set(qp: IncrementQP, force_scale: float) -> MultiplierSet:
     return MultiplierSet(near[keep], B_w, _null_space(B_w), lam0[keep], float(lam0[k]), residual)
 
 
+def least_norm_member(ms: MultiplierSet) -> tuple[np.ndarray, float]:
+    """The member of ``ms`` whose contact forces have the least Euclidean norm: ``(lam, F)`` on
+    ``ms.rows`` (formulations/stability.md sec. 7, "The reported forces").
+
+    The set is a closed convex polyhedron and the norm strictly convex in ``lam``, so this member
+    is unique; ``F`` follows from ``lam`` (a kernel direction that moved ``F`` alone would
+    balance the load row by nothing).  It is the projection of zero onto the set: in the kernel
+    coordinates ``u``, ``min |lam0 + N u|^2 s.t. lam0 + N u >= 0``, a small QP (Clarabel).
+    Where the set is one point (unique multipliers) it is that point.
+    """
+    import clarabel  # only the reported forces of degenerate states need it
+
+    k = len(ms.rows)
+    w0 = np.r_[ms.lam, ms.F]
+    N = ms.kernel[:k]
+    if N.shape[1] == 0:
+        return ms.lam.copy(), ms.F
+    unit = max(float(np.max(np.abs(ms.lam), initial=0.0)), 1e-12)
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    for key, value in SUPPORT_LP_SETTINGS.items():
+        setattr(settings, key, value)
+    P = sp.csc_matrix(np.triu(N.T @ N))
+    solver = clarabel.DefaultSolver(
+        P, N.T @ ms.lam / unit, sp.csc_matrix(-N), ms.lam / unit, [clarabel.NonnegativeConeT(k)], settings
+    )
+    sol = solver.solve()
+    if str(sol.status) not in ("Solved", "AlmostSolved"):
+        raise SolverFailure("multipliers", f"least-norm member: {sol.status}", detail="reported forces")
+    w = w0 + unit * (ms.kernel @ np.asarray(sol.x))
+    return np.maximum(w[:k], 0.0), float(w[k])
+
+
 def _maximise_smallest_eigenvalue(
     base: np.ndarray, dirs: np.ndarray, lam0: np.ndarray, N: np.ndarray, bound: float, tol: float
 ) -> np.ndarray:

@@ -231,3 +231,55 @@ def test_the_cutting_planes_show_a_stable_member_or_report_their_lp(monkeypatch)
     monkeypatch.setattr(multipliers, "linprog", lambda *a, **k: SimpleNamespace(status=4, message="injected"))
     with pytest.raises(SolverFailure, match="cutting-plane LP: injected"):
         multipliers._cutting_planes(_tent, 1, lam0, N, 3.0, 1e-9)
+
+
+def _set(lam0, kernel, F=1.0):
+    """A multiplier set on rows 0..k-1: ``(lam, F) = (lam0, F) + kernel u`` (kernel (k + 1, d))."""
+    k = len(lam0)
+    ker = np.asarray(kernel, dtype=float).reshape(k + 1, -1)
+    return multipliers.MultiplierSet(np.arange(k), np.zeros((1, k + 1)), ker, np.asarray(lam0, float), F, 0.0)
+
+
+def test_the_least_norm_member_is_the_projection_of_zero_onto_the_set():
+    # Hand solutions.  {(2 + t, -t), F = 1 + t/2 : t in [-2, 0]}: |lam|^2 = (2 + t)^2 + t^2 is least
+    # at t = -1, inside: lam (1, 1), F 0.5.
+    lam, F = multipliers.least_norm_member(_set([2.0, 0.0], [1.0, -1.0, 0.5]))
+    assert lam == pytest.approx([1.0, 1.0], abs=1e-7) and F == pytest.approx(0.5, abs=1e-7)
+    # {(1 + t, 2 + t) : t >= -1}: the unconstrained least norm (t = -1.5) leaves the set, so the
+    # answer is on its bound, t = -1: lam (0, 1).
+    lam, _ = multipliers.least_norm_member(_set([1.0, 2.0], [1.0, 1.0, 0.0]))
+    assert lam == pytest.approx([0.0, 1.0], abs=1e-7)
+    # One member: nothing to choose.
+    lam, F = multipliers.least_norm_member(_set([0.3, 0.7], np.zeros((3, 0)), F=2.0))
+    assert lam.tolist() == [0.3, 0.7] and F == 2.0
+
+
+def test_the_reported_forces_do_not_depend_on_the_backend():
+    # The corner-loaded 3x3 square at failure, by PIQP and by Clarabel: the two paths end at the
+    # same state (F_c* within 1e-9) whose multiplier set is not one point (the rows in contact are
+    # dependent), and the two backends' multipliers differ there (by 5.8e-3 measured, on a force
+    # scale of 0.75).  The reported forces, the least-norm member of the set read from the state,
+    # agree to the state's own accuracy (1.5e-9 measured; 1e-7 of the force scale allowed).
+    from qpscale.experiments.puncture import reported_forces
+    from qpscale.increment import PunctureLevel
+
+    forces = []
+    for solver in ("piqp", "clarabel"):
+        setup = PunctureSetup(design=Design(rings=1), load_point=(-1.0, -1.0), sqp=SQPSettings(solver=solver))
+        result = run_puncture(setup)
+        state = result.states[-1]
+        cs, f = reported_forces(setup, state, result.load_point)
+        forces.append(dict(zip(cs.labels, f)))
+        # The least-norm member is no longer than the backend's member of the same set.
+        assert np.linalg.norm(f) <= np.linalg.norm(state.lam) * (1 + 1e-9)
+    scale = max(forces[0].values())
+    labels = set(forces[0]) | set(forces[1])
+    assert max(abs(forces[0].get(k, 0.0) - forces[1].get(k, 0.0)) for k in labels) <= 1e-7 * scale
+    # The set at that state has more than one member: the rule has something to decide.
+    patch, K = build_model(setup)
+    load = _load_point(patch, result.load_point)
+    level = PunctureLevel(
+        patch, K, state.q, load, state.delta, setup.contact, setup.sqp, previous=state.contacts
+    )
+    qp, _ = level.increment_qp()
+    assert multiplier_set(qp, scale).kernel.shape[1] > 0

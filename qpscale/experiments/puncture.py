@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..certify import ForceCheck, check_force
-from ..contact import ContactSettings
+from ..contact import ContactSet, ContactSettings
 from ..contact.symmetry import Mirror, map_dofs
 from ..continuation import (
     Bifurcation,
@@ -214,6 +214,40 @@ def build_model(setup: PunctureSetup) -> tuple[Patch, sp.csc_matrix]:
         nu=setup.nu, fidelity=setup.fidelity, coupling=setup.coupling_factor, edges=setup.edges
     )
     return patch, stiffness_matrix(patch, model)
+
+
+def reported_forces(
+    setup: PunctureSetup, state: Equilibrium, load_point: tuple[float, float] | np.ndarray
+) -> tuple[ContactSet | None, np.ndarray]:
+    """The contact forces of a converged ``state`` by the stated rule (formulations/stability.md
+    sec. 7, "The reported forces"): the least-norm member of the state's multiplier set.
+
+    Returns the contact set of the increment QP linearised at the state (its rows are the
+    state's, detected again at its configuration) and one force per row (zero on rows no member
+    loads).  Read from the state, not from the backend's multipliers (``state.lam``): where the
+    rows in contact are dependent (a hinged plane, a face on a face, a locked group's self-stress)
+    the forces that balance the state are a set, and each backend returns its own point of it.
+    The feature formulation and the penalty baseline (no multiplier set, ``_checkable``) report
+    the path's own: ``state.contacts`` and ``state.lam``.
+    """
+    from ..increment import PunctureLevel
+    from ..multipliers import least_norm_member, multiplier_set
+
+    if state.contacts is None or not len(state.contacts.gap) or not _checkable(setup):
+        return state.contacts, np.asarray(state.lam)
+    patch, K = build_model(setup)
+    load = _load_point(patch, (float(load_point[0]), float(load_point[1])))
+    level = PunctureLevel(
+        patch, K, state.q, load, state.delta, setup.contact, setup.sqp, previous=state.contacts
+    )
+    qp, rows = level.increment_qp()
+    if rows is None:
+        return None, np.zeros(0)
+    ms = multiplier_set(qp, max(float(np.max(state.lam, initial=0.0)), abs(state.F)))
+    lam, _ = least_norm_member(ms)
+    out = np.zeros(len(rows.gap))
+    out[ms.rows] = lam
+    return rows, out
 
 
 def top_vertices(patch: Patch) -> np.ndarray:
