@@ -95,14 +95,12 @@ def _patch(scene: Scene) -> tuple[dict, dict]:
     sequence"): the paper's patch at every vertex, then its worst vertex on the patches of 1, 2,
     ..., ``scene.rings`` rings, and what the sequence says about the skin
     (``patch_convergence.estimate``)."""
-    from dataclasses import replace as replace_design
-
     from ..experiments.puncture import PunctureSetup, run_puncture
     from ..patch_convergence import estimate
     from .paper_scenes import PAPER_RINGS
 
     def run(rings: int, point: tuple[float, float] | None):
-        design = replace_design(scene.design, rings=rings)
+        design = replace(scene.design, rings=rings)
         setup = PunctureSetup(
             design=design,
             interaction=scene.interaction,
