@@ -27,7 +27,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from . import validation as v
-from .errors import InvalidDesign, OutputNotWritten
+from .errors import InvalidDesign, OutputNotWritten, SolverFailure
 from .solvers import DEFAULT_SOLVER
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -182,12 +182,14 @@ def _design(values: Mapping[str, Any], rings: int) -> Design:
 
 
 def _write_optional(what: str, writer: Callable[[], Any], errors: list[str]) -> str | None:
-    """Run an optional output's writer; a failure (disk full, permissions) is recorded, not raised,
-    so that the computed result is never lost for a file that could not be written."""
+    """Run an optional output's writer; a failure (disk full, permissions; a state whose reported
+    contact forces could not be computed, with the solver's status) is recorded, not raised, so
+    that the computed result is never lost for a file that could not be written."""
     try:
         return str(writer())
-    except OSError as exc:
-        message = f"{what}: could not write: {exc.strerror or exc}"
+    except (OSError, SolverFailure) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        message = f"{what}: could not write: {reason}"
         errors.append(message)
         warnings.warn(message, OutputNotWritten, stacklevel=3)
         return None

@@ -204,6 +204,23 @@ def test_a_failed_vtk_keeps_the_puncture_result(monkeypatch, tmp_path):
     assert one_error_line(result).startswith("error: --vtk:")
 
 
+def test_reported_forces_that_fail_keep_the_puncture_result_and_name_the_status(monkeypatch, tmp_path):
+    # The series' contact forces come from each state's multiplier set (stability.md eq. (8c)); a
+    # solver failure there is the output's failure, reported with its status, never a number.
+    import qpscale.experiments.puncture as pu
+    from qpscale.errors import SolverFailure
+
+    def fails(*a, **k):
+        raise SolverFailure("multipliers", "least-norm member: MaxIterations", detail="reported forces")
+
+    monkeypatch.setattr(pu, "reported_forces", fails)
+    result = run("puncture", "--isolated", "--vtk", str(tmp_path / "v"), "--json")
+    assert result.exit_code == 3
+    assert json.loads(result.stdout)["Fc_star"] == pytest.approx(0.2947, abs=1e-3)
+    line = one_error_line(result)
+    assert line.startswith("error: --vtk:") and "MaxIterations" in line
+
+
 def test_a_closed_pipe_costs_no_traceback():
     # The reader of stdout goes away before the result is written (``| head -c0``).
     proc = subprocess.Popen(
