@@ -98,6 +98,23 @@ class MultiplierSet:
     residual: float
 
 
+def _clarabel_settings():
+    """Clarabel's settings for the multiplier set's small programs (``SUPPORT_LP_SETTINGS``), quiet."""
+    import clarabel  # only the stability test's degenerate states and the reported forces need it
+
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    for key, value in SUPPORT_LP_SETTINGS.items():
+        setattr(settings, key, value)
+    return settings
+
+
+def force_scale_of(eq: Equilibrium) -> float:
+    """The force scale of a state's multiplier set (``multiplier_set``'s ``force_scale``): its largest
+    contact force or its load."""
+    return max(float(np.max(eq.lam, initial=0.0)), abs(eq.F))
+
+
 def _support_lp(w0: np.ndarray, ker: np.ndarray, k: int, rows: np.ndarray, cap: float, bound: float):
     """``max sum_{i in rows} min(lam_i, cap)`` over ``lam = (w0 + ker u)[:k] >= 0``, ``lam <= bound``:
     unknowns (u, t); returns its answer ``w0 + ker u`` (brought into the set by :func:`_into_set`),
@@ -126,10 +143,7 @@ def _support_lp(w0: np.ndarray, ker: np.ndarray, k: int, rows: np.ndarray, cap: 
         format="csc",
     )
     b = np.r_[w0[:k], bound - w0[:k], w0[rows], np.full(m, cap), np.zeros(m)] / unit
-    settings = clarabel.DefaultSettings()
-    settings.verbose = False
-    for key, value in SUPPORT_LP_SETTINGS.items():
-        setattr(settings, key, value)
+    settings = _clarabel_settings()
     c = np.r_[np.zeros(nu), -np.ones(m)]
     cones = [clarabel.NonnegativeConeT(len(b))]
     sol = clarabel.DefaultSolver(sp.csc_matrix((nu + m, nu + m)), c, A, b, cones, settings).solve()
@@ -237,13 +251,10 @@ def least_norm_member(ms: MultiplierSet) -> tuple[np.ndarray, float]:
     if N.shape[1] == 0:
         return ms.lam.copy(), ms.F
     unit = max(float(np.max(np.abs(ms.lam), initial=0.0)), 1e-12)
-    settings = clarabel.DefaultSettings()
-    settings.verbose = False
-    for key, value in SUPPORT_LP_SETTINGS.items():
-        setattr(settings, key, value)
     P = sp.csc_matrix(np.triu(N.T @ N))
+    cones = [clarabel.NonnegativeConeT(k)]
     solver = clarabel.DefaultSolver(
-        P, N.T @ ms.lam / unit, sp.csc_matrix(-N), ms.lam / unit, [clarabel.NonnegativeConeT(k)], settings
+        P, N.T @ ms.lam / unit, sp.csc_matrix(-N), ms.lam / unit, cones, _clarabel_settings()
     )
     sol = solver.solve()
     if str(sol.status) not in ("Solved", "AlmostSolved"):
@@ -332,8 +343,8 @@ def uniform_second_variation(
     ``qp`` is the increment QP linearised at ``eq`` and ``eq.contacts`` its contact set
     (``SQPLevels.increment_qp``); no backend's answer is read.
     """
-    force_scale = max(float(np.max(eq.lam, initial=0.0)), abs(eq.F))
-    ms = multiplier_set(qp, force_scale)
+    forces = force_scale_of(eq)
+    ms = multiplier_set(qp, forces)
     indicator = np.zeros(qp.m_ineq)
     indicator[ms.rows] = 1.0
     lifted = _lifted(patch, replace(eq, lam=indicator, F=0.0), load)
@@ -342,7 +353,7 @@ def uniform_second_variation(
             "stability", "multiplier rows are not plane rows", detail="uniform second variation"
         )
     n, N = patch.n_scales, lifted.size
-    bound = BOX * max(force_scale, float(np.max(ms.lam, initial=0.0)))  # the support LPs' box
+    bound = BOX * max(forces, float(np.max(ms.lam, initial=0.0)))  # the support LPs' box
     if N > SPARSE_FROM or 8.0 * N * N * (len(ms.rows) + ms.kernel.shape[1] + 4) > DENSE_BYTES:
         return _sparse_uniform(patch, K, eq, load, lifted, ms, bound, tol)
     C = np.vstack([lifted.jacobian(lifted.z0), np.r_[load.gradient(eq.q), np.zeros(N - 5 * n)]])

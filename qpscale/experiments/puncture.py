@@ -231,7 +231,7 @@ def reported_forces(
     the path's own: ``state.contacts`` and ``state.lam``.
     """
     from ..increment import PunctureLevel
-    from ..multipliers import least_norm_member, multiplier_set
+    from ..multipliers import force_scale_of, least_norm_member, multiplier_set
 
     if state.contacts is None or not len(state.contacts.gap) or not _checkable(setup):
         return state.contacts, np.asarray(state.lam)
@@ -243,7 +243,7 @@ def reported_forces(
     qp, rows = level.increment_qp()
     if rows is None:
         return None, np.zeros(0)
-    ms = multiplier_set(qp, max(float(np.max(state.lam, initial=0.0)), abs(state.F)))
+    ms = multiplier_set(qp, force_scale_of(state))
     lam, _ = least_norm_member(ms)
     out = np.zeros(len(rows.gap))
     out[ms.rows] = lam

@@ -114,8 +114,8 @@ def load_line_effect(t: pd.DataFrame) -> str:
 def patch_size(t: pd.DataFrame) -> str:
     """The 5x5 ratio against the patch-size study's estimate of the skin's, design by design."""
     ok = _ok(t)
-    p = ok[ok["kind"] == "patch"] if "kind" in ok else ok.iloc[:0]
-    if not len(p) or "ratio_iso_patch" not in p:
+    p = ok[ok["kind"] == "patch"]
+    if not len(p):
         return "not run"
     parts = []
     for _, r in p.iterrows():

@@ -55,12 +55,21 @@ def effective_neighbours(scene: Scene) -> list[list[float]]:
     ]
 
 
-def _puncture(scene: Scene) -> tuple[dict, dict]:
-    from ..experiments.puncture import PunctureSetup, run_puncture
+def _puncture_setup(scene: Scene, rings: int | None = None, point: tuple[float, float] | None = None):
+    """The puncture set-up of a puncture or patch scene, on ``rings`` rings instead of the scene's
+    and at ``point`` instead of the worst vertex when given."""
+    from ..experiments.puncture import PunctureSetup
 
-    setup = PunctureSetup(
-        design=scene.design, interaction=scene.interaction, nu=NU_S, increments=scene.increments
+    design = scene.design if rings is None else replace(scene.design, rings=rings)
+    return PunctureSetup(
+        design=design, interaction=scene.interaction, nu=NU_S, increments=scene.increments, load_point=point
     )
+
+
+def _puncture(scene: Scene) -> tuple[dict, dict]:
+    from ..experiments.puncture import run_puncture
+
+    setup = _puncture_setup(scene)
     r = run_puncture(setup)
     row = {
         "Fc_star": r.Fc_star,
@@ -95,20 +104,12 @@ def _patch(scene: Scene) -> tuple[dict, dict]:
     sequence"): the paper's patch at every vertex, then its worst vertex on the patches of 1, 2,
     ..., ``scene.rings`` rings, and what the sequence says about the skin
     (``patch_convergence.estimate``)."""
-    from ..experiments.puncture import PunctureSetup, run_puncture
+    from ..experiments.puncture import run_puncture
     from ..patch_convergence import estimate
     from .paper_scenes import PAPER_RINGS
 
     def run(rings: int, point: tuple[float, float] | None):
-        design = replace(scene.design, rings=rings)
-        setup = PunctureSetup(
-            design=design,
-            interaction=scene.interaction,
-            nu=NU_S,
-            increments=scene.increments,
-            load_point=point,
-        )
-        return run_puncture(setup)
+        return run_puncture(_puncture_setup(scene, rings, point))
 
     paper = run(PAPER_RINGS, None)
     point = (float(paper.load_point[0]), float(paper.load_point[1]))
