@@ -2,7 +2,9 @@
 
 Implements formulations/substrate.md sec. 10: the stopping rule |F(r) - F(r-1)| <= tol |F(r)| over
 patches of r = start, start + 1, ... rings, and the fit F(n) = F_inf - a n^-p in the patch width
-n = 2 r + 1 (in scales) with its error estimate, reported only where the sequence has that form.
+n = 2 r + 1 (in scales) with its error estimate, reported only where the sequence has that form;
+and formulations/puncture.md sec. 7 ("The study's patch sequence"): what a fixed sequence of
+patches says about the skin (``estimate``).
 """
 
 from __future__ import annotations
