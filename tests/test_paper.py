@@ -13,7 +13,7 @@ from qpscale.cli import app
 from qpscale.errors import InvalidDesign, SolverFailure
 from qpscale.studies.figures import FIGURES, ashby_points
 from qpscale.studies.paper import add_ratios, load_results, run_paper, run_scenes
-from qpscale.studies.paper_run import directional_rot_stiffness, run_scene
+from qpscale.studies.paper_run import directional_rot_stiffness, paper_sibling, run_scene, run_scene_group
 from qpscale.studies.paper_scenes import Scene, paper_scenes, patch_scenes
 from qpscale.substrate import isolated_block
 from qpscale.tiling import DESIGNS
@@ -36,10 +36,15 @@ def test_full_plan_covers_the_paper():
     slant = [s for s in scenes if s.study == "slant" and s.rings > 0]
     assert {(s.slant_deg, s.slant_dir_deg) for s in slant} == {(60.0, 0.0), (60.0, 45.0), (60.0, 90.0)}
     assert len(slant) == 3 * len(DESIGNS)
-    # The patch-size study: every unslanted design, full interaction, up to 9x9.
+    # The patch-size study: every design of the interaction and slant studies, full interaction,
+    # up to 9x9; each starts from a puncture scene of the plan (its sibling).
     patch = [s for s in scenes if s.study == "patch"]
-    assert {(s.shape, s.tiling) for s in patch} == set(DESIGNS) and len(patch) == len(DESIGNS)
-    assert {(s.kind, s.rings, s.interaction, s.slant_deg) for s in patch} == {("patch", 4, "full", 0.0)}
+    assert {(s.shape, s.tiling, s.slant_deg, s.slant_dir_deg) for s in patch} == {
+        (s.shape, s.tiling, s.slant_deg, s.slant_dir_deg) for s in inter + slant
+    }
+    assert len(patch) == 4 * len(DESIGNS)
+    assert {(s.kind, s.rings, s.interaction) for s in patch} == {("patch", 4, "full")}
+    assert {paper_sibling(s) for s in patch} <= set(scenes)
 
 
 def test_scene_rejects_bad_input():
@@ -179,23 +184,84 @@ def test_ratios_use_the_isolated_scale_of_the_same_geometry():
 
 
 def test_patch_scene_follows_the_paper_patch_worst_vertex_outwards():
-    # The quick study's square array: the 5x5 at every vertex, then its worst vertex (the corner,
-    # by the square's symmetry any of the four) on the 3x3, 5x5 and 7x7 patches, at 6 target
-    # increments.  Independent values: the same patches' F_c* at 16 increments (formulations/
-    # substrate.md sec. 10, increment.md sec. 2c: 1.2250, 1.3104548087, 1.3492391753): the paths are
-    # increment-size independent to 1e-8 (puncture.md sec. 4), so 1e-7 relative.
+    # The quick study's square array: its sibling, the 5x5 at every vertex, then the patch scene
+    # puts the worst vertex (the corner, by the square's symmetry any of the four) on the 3x3, 5x5
+    # and 7x7 patches, at 6 target increments, in one task as the study runs them.  Independent
+    # values: the same patches' F_c* at 16 increments (formulations/substrate.md sec. 10,
+    # increment.md sec. 2c: 1.2250, 1.3104548087, 1.3492391753): the paths are increment-size
+    # independent to 1e-8 (puncture.md sec. 4), so 1e-7 relative.
     scene = patch_scenes(quick=True)[0]
     assert (scene.shape, scene.tiling, scene.rings) == ("square", "arrayed", 3)
-    row, data = run_scene(scene)
+    sibling = paper_sibling(scene)
+    (sib, _), (row, data) = run_scene_group([sibling, scene])
+    assert sib["status"] == "ok" and sib["Fc_check"] == "verified"
     assert row["status"] == "ok", row.get("error")
     assert data["widths"] == [3, 5, 7]
     assert data["Fc_star"][1:] == pytest.approx([1.3104548087, 1.3492391753], rel=1e-7)
     assert data["Fc_star"][0] == pytest.approx(1.2250, abs=1e-4)
     assert abs(row["load_x"]) == pytest.approx(1.0) and abs(row["load_y"]) == pytest.approx(1.0)
+    # The 5x5 is the sibling's, read and not run again: its QPs count in the sequence's.
+    assert (row["Fc_star"], row["load_x"], row["load_y"]) == (sib["Fc_star"], sib["load_x"], sib["load_y"])
     assert row["Fc_star"] == data["Fc_star"][1] and row["unverified"] == 0
+    assert row["qp_solves"] > sib["qp_solves"]
     # Still rising by 2.9 % at the last ring, too few patches to fit: no limit is claimed.
     assert row["patch_verdict"] == "not converged" and row["Fc_patch"] == data["Fc_star"][-1]
     assert row["patch_change"] == pytest.approx(1 - 1.3104548 / 1.3492392, rel=1e-6)
+
+
+class _Run:
+    """A stand-in for ``run_puncture``'s result: what ``paper_run`` reads of it."""
+
+    def __init__(self, Fc: float, point=(0.5, -0.5), status: str = "verified"):
+        from types import SimpleNamespace
+
+        self.Fc_star, self.load_point, self.qp_solves = Fc, np.array(point), 7
+        self.Fc_check = SimpleNamespace(status=status)
+
+
+def test_patch_scene_runs_the_paper_patch_unless_its_sibling_recorded_it(monkeypatch):
+    # Which 5x5 a patch scene uses: its sibling's row when it ended ok with every column the scene
+    # reads; otherwise (a failed sibling, a row saved before Fc_check was recorded, none) it runs the
+    # paper's patch itself.  The puncture runs are stand-ins keyed by rings: the 5x5 run here says
+    # 2.0 at (0.5, -0.5), the sibling's row 2.5 at (1, 1).
+    import qpscale.experiments.puncture as punct
+
+    calls = []
+
+    def fake(setup):
+        calls.append((setup.design.rings, setup.load_point))
+        return _Run({1: 1.0, 2: 2.0, 3: 3.0}[setup.design.rings])
+
+    monkeypatch.setattr(punct, "run_puncture", fake)
+    scene = Scene("patch", "patch", "square", "arrayed", rings=3, increments=6)
+    sibling = {"status": "ok", "Fc_star": 2.5, "load_x": 1.0, "load_y": 1.0, "qp_solves": 40}
+    sibling["Fc_check"] = "unverified"
+    done = {paper_sibling(scene): sibling}
+    row, data = run_scene(scene, done=done)
+    assert [c[0] for c in calls] == [1, 3] and {c[1] for c in calls} == {(1.0, 1.0)}
+    assert data["Fc_star"] == [1.0, 2.5, 3.0] and row["qp_solves"] == 40 + 2 * 7 and row["unverified"] == 1
+    for stale in (
+        {**sibling, "status": "time_limit"},
+        {k: v for k, v in sibling.items() if k != "Fc_check"},
+        None,
+    ):
+        calls.clear()
+        row, data = run_scene(scene, done={paper_sibling(scene): stale} if stale else None)
+        assert [c for c in calls] == [(2, None), (1, (0.5, -0.5)), (3, (0.5, -0.5))]
+        assert data["Fc_star"] == [1.0, 2.0, 3.0] and row["qp_solves"] == 21 and row["unverified"] == 0
+
+
+def test_resumed_study_hands_a_saved_sibling_to_its_patch_scene(monkeypatch):
+    # run_scenes(known=...): a patch scene whose sibling finished in an earlier run gets that row.
+    import qpscale.studies.paper_run as pr
+
+    seen = []
+    monkeypatch.setattr(pr, "_patch", lambda scene, sib=None: (seen.append(sib), ({}, {}))[1])
+    scene = Scene("patch", "patch", "hexagon", "honeycomb", 60.0, 45.0, rings=3, increments=6)
+    saved = {"status": "ok", "Fc_star": 1.0}
+    run_scenes([scene], workers=1, known={paper_sibling(scene): saved, ISO_SQUARE: {"status": "ok"}})
+    run_scenes([scene], workers=1)
+    assert seen == [saved, None]
 
 
 def test_run_paper_small_in_parallel(tmp_path):
@@ -383,7 +449,8 @@ def test_findings_read_the_table():
 
 
 def test_flexure_scenes_that_share_a_condensation_run_as_one_task():
-    # The full study's tasks (paper._groups): each puncture scene alone; the flexure scenes of one
+    # The full study's tasks (paper._groups): each puncture scene alone or with the patch scene
+    # that starts from it (below); the flexure scenes of one
     # design and load line that differ only in slant (and study) together, so that one process
     # condenses once for them (membrane.md sec. 5, "Reuse"). Counted from the plan: square arrayed,
     # per load line, has the two validation slants and the four variants (6); each of the 7 other
@@ -396,7 +463,12 @@ def test_flexure_scenes_that_share_a_condensation_run_as_one_task():
     assert [g[0] for g in groups] == sorted(g[0] for g in groups)  # in the order of their first scene
     flexure = [g for g in groups if scenes[g[0]].kind == "flexure"]
     assert sorted(len(g) for g in flexure) == [1] * 12 + [4] * 14 + [6] * 2
-    assert all(len(g) == 1 for g in groups if scenes[g[0]].kind == "puncture")
+    # Each patch scene runs after its sibling, the puncture scene it reads its worst vertex from.
+    punct = [g for g in groups if scenes[g[0]].kind == "puncture"]
+    pairs = [g for g in punct if len(g) > 1]
+    assert sorted(len(g) for g in punct) == [1] * (len(punct) - len(pairs)) + [2] * (4 * len(DESIGNS))
+    assert all(paper_sibling(scenes[b]) == scenes[a] for a, b in pairs)
+    assert sum(len(g) for g in groups if scenes[g[0]].kind == "patch") == 0
     for g in flexure:
         first = scenes[g[0]]
         for i in g[1:]:

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from .engine import Engine
-from .paper_run import SCENE_CLOCK, condensation_group, run_scene_group
+from .paper_run import SCENE_CLOCK, paper_sibling, run_scene_group, task_group
 from .paper_scenes import Scene, paper_scenes
 
 MAX_WORKERS = 2
@@ -64,6 +64,7 @@ def run_scenes(
     limit_s: float | None = None,
     on_done: Callable[[Scene, dict, dict], None] | None = None,
     engine: Engine | None = None,
+    known: dict[Scene, dict] | None = None,
 ) -> tuple[list[dict], dict]:
     """Run ``scenes`` on ``engine`` (None: a local one of ``workers`` processes, 1: this process),
     rows in the order given.
@@ -74,8 +75,9 @@ def run_scenes(
     scenes not yet done and, for a local cluster, ends its worker processes: no worker keeps
     computing a scene nobody will read.  A scene whose task the cluster gave up (its workers
     killed, e.g. out of memory) is a row with the exception's class as its status.  A task is one
-    scene, or the flexure scenes that share a condensation (:func:`_groups`), run one after
-    another in one process.
+    scene, or the scenes that share work (:func:`_groups`), run one after another in one process.
+    ``known`` maps scenes run before (a resumed study's) to their rows: a patch scene whose sibling
+    is among them reads its worst vertex there instead of running the paper's patch again.
     """
     rows: dict[str, dict] = {}
     data: dict[str, dict] = {}
@@ -98,26 +100,31 @@ def run_scenes(
         # No cluster to start for one task (or none left to run after a resume).
         n = min(workers, MAX_WORKERS, os.cpu_count() or 1) if len(groups) > 1 else 1
         with Engine(n) as own:
-            return run_scenes(scenes, workers, progress, limit_s, on_done, own)
-    tasks = [([scenes[i] for i in group], limit_s) for group in groups]
+            return run_scenes(scenes, workers, progress, limit_s, on_done, own, known)
+    known = known or {}
+    tasks = []
+    for group in groups:
+        members = [scenes[i] for i in group]
+        sibs = [sib for sib in map(paper_sibling, members) if sib is not None and sib in known]
+        tasks.append((members, limit_s, {sib: known[sib] for sib in sibs}))
     engine.map(run_scene_group, tasks, on_done=done, failure=lost, name="scene")
     return [rows[s.key] for s in scenes], data
 
 
 def _groups(scenes: list[Scene]) -> list[list[int]]:
-    """The tasks: each puncture scene alone; the flexure scenes that share a condensation
-    (``paper_run.condensation_group``) together, in the order of the first of them."""
+    """The tasks: scenes that share work (``paper_run.task_group``: the flexure scenes of one
+    condensation; a patch scene and the puncture scene it starts from) together, in the order of
+    the first of them, puncture scenes before patch scenes; every other scene alone."""
     groups: list[list[int]] = []
     at: dict[Scene, int] = {}
     for i, scene in enumerate(scenes):
-        key = condensation_group(scene)
-        if key is None or key not in at:
-            if key is not None:
-                at[key] = len(groups)
+        key = task_group(scene)
+        if key not in at:
+            at[key] = len(groups)
             groups.append([i])
         else:
             groups[at[key]].append(i)
-    return groups
+    return [sorted(g, key=lambda i: scenes[i].kind == "patch") for g in groups]
 
 
 def _lookup(table: pd.DataFrame, mask: pd.Series, column: str) -> float:
@@ -291,7 +298,9 @@ def run_paper(
         rows[scene.key], data[scene.key] = row, d
         write_progress(out, len(rows), len(todo_all), complete=False)
 
-    run_scenes(todo, workers, progress, limit, on_done, engine)
+    run_scenes(
+        todo, workers, progress, limit, on_done, engine, {s: rows[s.key] for s in todo_all if s.key in rows}
+    )
     table = add_ratios(pd.DataFrame([rows[s.key] for s in todo_all]))
     curves = {s.key: data[s.key] for s in todo_all}
     figures = all_figures(table, curves, out)

@@ -83,6 +83,7 @@ def _puncture(scene: Scene) -> tuple[dict, dict]:
         "qp_solves": r.qp_solves,
         "load_levels": r.load_levels,
         "branched": r.branch.branched,
+        "Fc_check": r.Fc_check.status if r.Fc_check is not None else "none",
         "coupling": setup.coupling_factor,
         "Fc_N": force_from_star(r.Fc_star, E_S_PA, NU_S, L_M),
         "wc_mm": float(r.w_star[-1]) * L_M * 1e3,
@@ -99,27 +100,62 @@ def _puncture(scene: Scene) -> tuple[dict, dict]:
     return row, data
 
 
-def _patch(scene: Scene) -> tuple[dict, dict]:
+def paper_sibling(scene: Scene) -> Scene | None:
+    """The puncture scene a patch scene starts from: the paper's patch of the same design at every
+    vertex (the interaction study's full scene, or the slant study's); None for other kinds."""
+    if scene.kind != "patch":
+        return None
+    from .paper_scenes import PAPER_RINGS
+
+    study = "slant" if scene.slant_deg > 0.0 else "interaction"
+    return replace(scene, study=study, kind="puncture", rings=PAPER_RINGS)
+
+
+#: What a patch scene reads from its sibling's row instead of running the paper's patch again.
+SIBLING_COLUMNS = ("Fc_star", "load_x", "load_y", "qp_solves", "Fc_check")
+
+
+def _paper_patch(scene: Scene, sibling: dict | None) -> dict:
+    """The paper's patch of a patch scene at its worst vertex (``SIBLING_COLUMNS``): read from its
+    sibling's row when that run ended ok and recorded them all, run here otherwise.  The two are the
+    same computation (the same set-up), so the patch scene's row does not depend on which."""
+    from ..experiments.puncture import run_puncture
+    from .paper_scenes import PAPER_RINGS
+
+    if sibling is not None and sibling.get("status") == "ok":
+        if all(c in sibling and sibling[c] is not None for c in SIBLING_COLUMNS):
+            return {c: sibling[c] for c in SIBLING_COLUMNS}
+    r = run_puncture(_puncture_setup(scene, PAPER_RINGS))
+    return {
+        "Fc_star": float(r.Fc_star),
+        "load_x": float(r.load_point[0]),
+        "load_y": float(r.load_point[1]),
+        "qp_solves": int(r.qp_solves),
+        "Fc_check": r.Fc_check.status if r.Fc_check is not None else "none",
+    }
+
+
+def _patch(scene: Scene, sibling: dict | None = None) -> tuple[dict, dict]:
     """The patch-size sequence of one design (formulations/puncture.md sec. 7, "The study's patch
-    sequence"): the paper's patch at every vertex, then its worst vertex on the patches of 1, 2,
-    ..., ``scene.rings`` rings, and what the sequence says about the skin
-    (``patch_convergence.estimate``)."""
+    sequence"): the paper's patch at every vertex (``_paper_patch``: the sibling's row, ``sibling``,
+    when given), then its worst vertex on the patches of 1, 2, ..., ``scene.rings`` rings, and what
+    the sequence says about the skin (``patch_convergence.estimate``)."""
     from ..experiments.puncture import run_puncture
     from ..patch_convergence import estimate
     from .paper_scenes import PAPER_RINGS
 
-    def run(rings: int, point: tuple[float, float] | None):
-        return run_puncture(_puncture_setup(scene, rings, point))
-
-    paper = run(PAPER_RINGS, None)
-    point = (float(paper.load_point[0]), float(paper.load_point[1]))
+    paper = _paper_patch(scene, sibling)
+    point = (float(paper["load_x"]), float(paper["load_y"]))
     rings = list(range(1, scene.rings + 1))
-    results = {r: paper if r == PAPER_RINGS else run(r, point) for r in rings}
-    values = [float(results[r].Fc_star) for r in rings]
+    runs = {r: run_puncture(_puncture_setup(scene, r, point)) for r in rings if r != PAPER_RINGS}
+    values = [float(paper["Fc_star"]) if r == PAPER_RINGS else float(runs[r].Fc_star) for r in rings]
+    checks = [paper["Fc_check"]] + [
+        x.Fc_check.status if x.Fc_check is not None else "none" for x in runs.values()
+    ]
     widths = [2 * r + 1 for r in rings]
     est = estimate(widths, values)
     row = {
-        "Fc_star": float(paper.Fc_star),
+        "Fc_star": float(paper["Fc_star"]),
         "load_x": point[0],
         "load_y": point[1],
         **{f"Fc_r{r}": v for r, v in zip(rings, values)},
@@ -128,8 +164,8 @@ def _patch(scene: Scene) -> tuple[dict, dict]:
         "patch_verdict": est.verdict,
         "patch_change": est.change,
         "patch_note": est.note,
-        "qp_solves": sum(int(x.qp_solves) for x in results.values()),
-        "unverified": sum(x.Fc_check is None or x.Fc_check.status != "verified" for x in results.values()),
+        "qp_solves": int(paper["qp_solves"]) + sum(int(x.qp_solves) for x in runs.values()),
+        "unverified": sum(c != "verified" for c in checks),
     }
     data = {"rings": rings, "widths": widths, "Fc_star": values}
     return row, data
@@ -203,8 +239,11 @@ RUNNERS = {"puncture": _puncture, "flexure": _flexure, "patch": _patch}
 SCENE_CLOCK = "cpu"
 
 
-def run_scene(scene: Scene, limit_s: float | None = None) -> tuple[dict, dict]:
+def run_scene(scene: Scene, limit_s: float | None = None, done: dict | None = None) -> tuple[dict, dict]:
     """Run one scene; return its table row (parameters, results, status) and its curve data.
+
+    ``done`` maps scenes already run (here or in an earlier run) to their rows: a patch scene takes
+    its sibling's (``paper_sibling``) from it.
 
     Failures are caught here so that a study carries on: ``status`` holds the solver's
     status (or the exception's class), ``error`` the message, and result columns stay empty.
@@ -219,7 +258,10 @@ def run_scene(scene: Scene, limit_s: float | None = None) -> tuple[dict, dict]:
     data: dict = {}
     try:
         with time_limit(limit_s, clock=SCENE_CLOCK):
-            result, data = RUNNERS[scene.kind](scene)
+            if scene.kind == "patch":
+                result, data = _patch(scene, (done or {}).get(paper_sibling(scene)))
+            else:
+                result, data = RUNNERS[scene.kind](scene)
         row.update(result)
         row["status"] = "ok"
     except TimeLimitReached as exc:
@@ -249,6 +291,20 @@ def condensation_group(scene: Scene) -> Scene | None:
     return replace(scene, study="flexure", slant_deg=0.0, slant_dir_deg=0.0)
 
 
-def run_scene_group(scenes: list[Scene], limit_s: float | None = None) -> list[tuple[dict, dict]]:
-    """:func:`run_scene` on each of ``scenes`` in turn, in this process (each with its own limit)."""
-    return [run_scene(scene, limit_s) for scene in scenes]
+def task_group(scene: Scene) -> Scene:
+    """The scenes run one after another in one task share this: a flexure scene's condensation
+    group (``condensation_group``), a patch scene's sibling (``paper_sibling``), else the scene."""
+    return condensation_group(scene) or paper_sibling(scene) or scene
+
+
+def run_scene_group(
+    scenes: list[Scene], limit_s: float | None = None, done: dict | None = None
+) -> list[tuple[dict, dict]]:
+    """:func:`run_scene` on each of ``scenes`` in turn, in this process (each with its own limit);
+    each sees the rows of ``done`` and of the scenes before it."""
+    seen = dict(done or {})
+    results = []
+    for scene in scenes:
+        results.append(run_scene(scene, limit_s, seen))
+        seen[scene] = results[-1][0]
+    return results
