@@ -230,13 +230,14 @@ def ashby_points(table: pd.DataFrame) -> pd.DataFrame:
     return pd.concat([pts, iso[keys + ["ratio_iso", "Cf_star"]]], ignore_index=True)
 
 
-def _ashby_panel(ax, pts: pd.DataFrame, label_size: float) -> None:
-    """The points of ``pts`` on ``ax``: the 5x5 ratio filled, the patch-size estimate beside it."""
+def _ashby_panel(ax, pts: pd.DataFrame, label_size: float, patch: bool = True) -> None:
+    """The points of ``pts`` on ``ax``: the 5x5 ratio filled and, with ``patch``, the patch-size
+    estimate beside it."""
     for _, r in pts.iterrows():
         iso = r["tiling"] == "isolated"
         (dot,) = ax.plot(r["Cf_star"], r["ratio_iso"], "s" if iso else "o", color="grey" if iso else None)
         big = r.get("ratio_iso_patch", np.nan)
-        if not iso and np.isfinite(big):
+        if patch and not iso and np.isfinite(big):
             rising = big > r["ratio_iso"]
             marker = {"not converged": "^" if rising else "v"}.get(r["patch_verdict"], "o")
             err = r["ratio_iso_patch_err"] if np.isfinite(r["ratio_iso_patch_err"]) else None
@@ -255,24 +256,33 @@ def _ashby_panel(ax, pts: pd.DataFrame, label_size: float) -> None:
 
 def fig13_ashby(table: pd.DataFrame, data: dict, out: Path) -> list[Path]:
     """Normalised puncture resistance against normalised flexural compliance: (a) every design on
-    the paper's 5x5 patch (filled); (b) the unslanted arrays, with the patch-size study's estimate of
-    the skin beside each (open circle: converged or extrapolated, with its error bar; a triangle:
-    the largest patch, not converged, pointing the way the sequence last moved)."""
+    the paper's 5x5 patch, as the paper draws it; (b) the unslanted and (c) the slanted arrays, with
+    the patch-size study's estimate of the skin beside each 5x5 point (open circle: converged or
+    extrapolated, with its error bar; a triangle: the largest patch, not converged, pointing the
+    way the sequence last moved)."""
     pts = ashby_points(table)
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 5))
-    _ashby_panel(ax, pts, 6)
-    ax.set(
-        xlabel="C_f* (mean of load lines x, y)",
-        ylabel="F_c / F_c (isolated, same geometry)",
-        title="(a) Puncture resistance against flexural compliance",
-    )
-    flat = pts[(pts["tiling"] != "isolated") & (pts["slant_deg"] == 0.0)]
-    _ashby_panel(bx, flat, 7)
-    bx.set(
-        xlabel="C_f* (mean of load lines x, y)",
-        ylabel="F_c / F_c (isolated, same geometry)",
-        title="(b) Unslanted arrays: 5x5 (filled) and larger patches (open)",
-    )
+    fig, axes = plt.subplots(1, 3, figsize=(16, 5))
+    arrays = pts["tiling"] != "isolated"
+    panels = [
+        ("(a) Every design, 5x5 patch", pts, 6, False),
+        (
+            "(b) Unslanted arrays: 5x5 (filled), larger patches (open)",
+            pts[arrays & (pts["slant_deg"] == 0)],
+            7,
+            True,
+        ),
+        (
+            "(c) Slanted arrays: 5x5 (filled), larger patches (open)",
+            pts[arrays & (pts["slant_deg"] > 0)],
+            6,
+            True,
+        ),
+    ]
+    for ax, (title, sub, size, patch) in zip(axes, panels):
+        _ashby_panel(ax, sub, size, patch)
+        ax.set(
+            xlabel="C_f* (mean of load lines x, y)", ylabel="F_c / F_c (isolated, same geometry)", title=title
+        )
     fig.tight_layout()
     return _save(fig, out, "fig13_ashby")
 
