@@ -66,6 +66,12 @@ def _puncture_setup(scene: Scene, rings: int | None = None, point: tuple[float, 
     )
 
 
+def check_status(result) -> str:
+    """The exact F_c check's status of a puncture result (``verified``, ``unverified``), ``none``
+    where it has none (the penalty baseline): the table's ``Fc_check``."""
+    return result.Fc_check.status if result.Fc_check is not None else "none"
+
+
 def _puncture(scene: Scene) -> tuple[dict, dict]:
     from ..experiments.puncture import run_puncture
 
@@ -83,7 +89,7 @@ def _puncture(scene: Scene) -> tuple[dict, dict]:
         "qp_solves": r.qp_solves,
         "load_levels": r.load_levels,
         "branched": r.branch.branched,
-        "Fc_check": r.Fc_check.status if r.Fc_check is not None else "none",
+        "Fc_check": check_status(r),
         "coupling": setup.coupling_factor,
         "Fc_N": force_from_star(r.Fc_star, E_S_PA, NU_S, L_M),
         "wc_mm": float(r.w_star[-1]) * L_M * 1e3,
@@ -131,7 +137,7 @@ def _paper_patch(scene: Scene, sibling: dict | None) -> dict:
         "load_x": float(r.load_point[0]),
         "load_y": float(r.load_point[1]),
         "qp_solves": int(r.qp_solves),
-        "Fc_check": r.Fc_check.status if r.Fc_check is not None else "none",
+        "Fc_check": check_status(r),
     }
 
 
@@ -149,9 +155,7 @@ def _patch(scene: Scene, sibling: dict | None = None) -> tuple[dict, dict]:
     rings = list(range(1, scene.rings + 1))
     runs = {r: run_puncture(_puncture_setup(scene, r, point)) for r in rings if r != PAPER_RINGS}
     values = [float(paper["Fc_star"]) if r == PAPER_RINGS else float(runs[r].Fc_star) for r in rings]
-    checks = [paper["Fc_check"]] + [
-        x.Fc_check.status if x.Fc_check is not None else "none" for x in runs.values()
-    ]
+    checks = [paper["Fc_check"], *map(check_status, runs.values())]
     widths = [2 * r + 1 for r in rings]
     est = estimate(widths, values)
     row = {
