@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import qpscale.continuation as continuation
 import qpscale.experiments.puncture as puncture
 from qpscale import Design
+from qpscale.errors import SolverFailure
 from qpscale.experiments.puncture import PunctureSetup, build_model, run_puncture
 from qpscale.geometry import rotation_matrices, tangent_operators
 from qpscale.stability import (
@@ -238,3 +241,40 @@ def test_null_space_of_a_tall_matrix_is_scipys_without_the_square_factor():
     assert Z.shape == R.shape == (40, 2)
     np.testing.assert_allclose(Z @ Z.T, R @ R.T, atol=1e-12)
     np.testing.assert_allclose(Z.T @ Z, np.eye(2), atol=1e-12)
+
+
+def _captured_pencil():
+    """The scaled stiffness, geometric matrix and constraint rows of one state of the 9x9 staggered
+    triangle array slanted 60 deg towards 45 deg (the study's patch scene), captured where the sparse
+    test's second shift could not converge: its lowest eigenvalues on ker C are a cluster of the
+    separating planes' own modes (six within 0.03 %, the lowest two 8e-9 apart)."""
+    import scipy.sparse as sp
+
+    d = np.load(Path(__file__).parent / "data" / "plane_cluster_stability.npz")
+
+    def mat(k):
+        return sp.coo_matrix((d[f"{k}_val"], (d[f"{k}_row"], d[f"{k}_col"])), shape=tuple(d[f"{k}_shape"]))
+
+    return mat("Ks").tocsc(), mat("G").tocsc(), mat("C").tocsr()
+
+
+def test_sparse_test_resolves_a_cluster_of_plane_modes(monkeypatch):
+    # Second method: the dense null space of C (SVD, the dense test's threshold 1e-10) and every
+    # eigenvalue of Z'HZ.  mu_min to 1e-10 of max K_ii (measured 1e-17; the sparse test's own bound
+    # is near 1e-10, test above), the mode in ker C and its Rayleigh quotient mu.  With one shift
+    # (the scheme before SHIFT_RUNS) the tight run does not converge here.
+    import scipy.linalg as sla
+
+    import qpscale.stability as stability
+
+    Ks, G, C = _captured_pencil()
+    mu, x = stability.smallest_on_null_space(Ks, G, C)
+    Z = sla.null_space(C.toarray(), rcond=1e-10)
+    H = (Ks + G).toarray()
+    dense = np.linalg.eigvalsh(Z.T @ H @ Z)
+    assert mu == pytest.approx(dense[0], abs=1e-10)
+    assert dense[1] - dense[0] < 1e-8 and dense[5] < 1.001 * dense[0]  # the cluster
+    assert np.linalg.norm(C @ x) < 1e-9 and x @ H @ x == pytest.approx(mu, abs=1e-10)
+    monkeypatch.setattr(stability, "SHIFT_RUNS", 1)
+    with pytest.raises(SolverFailure, match="Lanczos did not converge"):
+        stability.smallest_on_null_space(Ks, G, C)
