@@ -485,3 +485,17 @@ def test_flexure_scenes_that_share_a_condensation_run_as_one_task():
                 first.load_line,
                 first.mesh_h,
             )
+
+
+def test_patch_scenes_get_a_longer_limit_and_keep_it_in_their_fingerprint():
+    # A patch scene runs three paths besides its sibling's, the largest on 81 scales: twice the
+    # scene limit.  A saved scene is reused only under the limit it ran with, so a patch scene
+    # saved under the old limit is run again.
+    from qpscale.studies.paper import _fingerprint
+    from qpscale.studies.paper_run import PATCH_LIMIT_FACTOR, scene_limit
+
+    patch = patch_scenes(quick=True)[0]
+    assert scene_limit(patch, 900.0) == PATCH_LIMIT_FACTOR * 900.0 == 1800.0
+    assert scene_limit(ISO_SQUARE, 900.0) == 900.0 and scene_limit(patch, None) is None
+    assert json.loads(_fingerprint(patch, 900.0))["limit_s"] == 1800.0
+    assert json.loads(_fingerprint(ISO_SQUARE, 900.0))["limit_s"] == 900.0

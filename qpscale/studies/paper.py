@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from .engine import Engine
-from .paper_run import SCENE_CLOCK, paper_sibling, run_scene_group, task_group
+from .paper_run import SCENE_CLOCK, paper_sibling, run_scene_group, scene_limit, task_group
 from .paper_scenes import Scene, paper_scenes
 
 MAX_WORKERS = 2
@@ -196,7 +196,12 @@ def _fingerprint(scene: Scene, limit_s: float | None) -> str:
     from .. import __version__
 
     return json.dumps(
-        {"scene": repr(scene), "limit_s": limit_s, "clock": SCENE_CLOCK, "version": __version__},
+        {
+            "scene": repr(scene),
+            "limit_s": scene_limit(scene, limit_s),
+            "clock": SCENE_CLOCK,
+            "version": __version__,
+        },
         sort_keys=True,
     )
 
