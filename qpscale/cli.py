@@ -705,7 +705,8 @@ def paper(
         "--scene-time-limit",
         help=_help(
             "--scene-time-limit",
-            "CPU seconds per scene before it is recorded as time_limit (default 900, quick 120).",
+            "CPU seconds per scene before it is recorded as time_limit (default 900, quick 120;"
+            " patch scenes twice that).",
         ),
     ),
     as_json: bool = JsonOpt,
