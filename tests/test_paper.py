@@ -441,12 +441,13 @@ def test_findings_read_the_table():
     patch |= {"ratio_iso_patch_err": np.nan, "patch_verdict": "not converged", "patch_change": 0.025}
     slanted = {**patch, "slant_deg": 60.0, "slant_dir_deg": 45.0, "ratio_iso": 20.0, "ratio_iso_patch": 21.0}
     slanted |= {"ratio_iso_patch_err": 0.5, "patch_verdict": "extrapolated"}
-    f = findings_table(pd.DataFrame([*rows, patch, slanted])).set_index("paper")["ours"]
+    settled = {**slanted, "slant_dir_deg": 90.0, "ratio_iso_patch": 19.9, "patch_verdict": "converged"}
+    f = findings_table(pd.DataFrame([*rows, patch, slanted, settled])).set_index("paper")["ours"]
     assert f["(not in the paper) the 5x5 patch against larger ones"] == (
         "5x5 -> larger patches: square arrayed 4.50 -> 4.90 (not converged: 2.5 % at the last ring)"
     )
     assert f["(not in the paper) the same, slanted 60 deg"] == (
-        "5x5 -> larger patches: square arrayed a45 20.00 -> 21.00 +- 0.50"
+        "5x5 -> larger patches: square arrayed a45 20.00 -> 21.00 +- 0.50, square arrayed a90 20.00 -> 19.90 (converged)"
     )
     assert f["arrays raise puncture resistance 4 to 8 times"].startswith("F_c/F_c,iso = 4.50 to 6.00")
     assert f["contact with 4 % coupling: barely above the isolated scale"].endswith("no converged scene")

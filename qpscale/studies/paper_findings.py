@@ -123,6 +123,8 @@ def _patch_sequences(t: pd.DataFrame, slanted: bool) -> str:
         big = f"{r['ratio_iso_patch']:.2f}"
         if r["patch_verdict"] == "extrapolated":
             big += f" +- {r['ratio_iso_patch_err']:.2f}"
+        elif r["patch_verdict"] == "converged":
+            big += " (converged)"
         elif r["patch_verdict"] == "not converged":
             big += f" (not converged: {100 * r['patch_change']:.1f} % at the last ring)"
         slant = f" a{r['slant_dir_deg']:g}" if slanted else ""
