@@ -447,7 +447,8 @@ def test_findings_read_the_table():
         "5x5 -> larger patches: square arrayed 4.50 -> 4.90 (not converged: 2.5 % at the last ring)"
     )
     assert f["(not in the paper) the same, slanted 60 deg"] == (
-        "5x5 -> larger patches: square arrayed a45 20.00 -> 21.00 +- 0.50, square arrayed a90 20.00 -> 19.90 (converged)"
+        "5x5 -> larger patches: square arrayed a45 20.00 -> 21.00 +- 0.50,"
+        " square arrayed a90 20.00 -> 19.90 (converged)"
     )
     assert f["arrays raise puncture resistance 4 to 8 times"].startswith("F_c/F_c,iso = 4.50 to 6.00")
     assert f["contact with 4 % coupling: barely above the isolated scale"].endswith("no converged scene")
