@@ -24,8 +24,9 @@ from .paper_run import SCENE_CLOCK, paper_sibling, run_scene_group, scene_limit,
 from .paper_scenes import Scene, paper_scenes
 
 MAX_WORKERS = 2
-# CPU-time limit of one scene in seconds (full run, quick run; paper_run.SCENE_CLOCK): a scene over
-# it is recorded with the status "time_limit" and the study goes on.  Each scene's times are in the
+# CPU-time limit of one scene in seconds (full run, quick run; paper_run.SCENE_CLOCK; a patch scene
+# twice it, paper_run.scene_limit): a scene over it is recorded with the status "time_limit" and the
+# study goes on.  Each scene's times are in the
 # table (wall_s, cpu_s).  The slowest scenes that ended took 470 s (full) and, on the slower machine
 # of 2026-11-28, 61 s (quick: the square array slanted 60 deg towards 45 deg, 4,349 QPs; the quick
 # limit was 60 s until then, and the quick hexagon at that slant, which once did not end, takes 35 s).
