@@ -477,9 +477,12 @@ def smallest_on_null_space(Ks: sp.csc_matrix, G: sp.csc_matrix, C: sp.csr_matrix
     floor = min(_gershgorin_floor(G), 0.0) - SHIFT_MARGIN
     start = np.random.default_rng(0).standard_normal(N)
 
+    factored: dict[float, spla.LinearOperator] = {}  # one LU per shift (a shift's two runs share it)
+
     def top(sigma: float, v0: Array, tolerance: float, restarts: int | None = None) -> tuple[float, Array]:
-        op = _shift_inverse(H, C, sigma)
-        theta, V = spla.eigsh(op, k=1, which="LA", v0=v0, tol=tolerance, maxiter=restarts)
+        if sigma not in factored:
+            factored[sigma] = _shift_inverse(H, C, sigma)
+        theta, V = spla.eigsh(factored[sigma], k=1, which="LA", v0=v0, tol=tolerance, maxiter=restarts)
         if not theta[0] > 0:  # the operator is positive semidefinite: round-off only
             raise SolverFailure("stability", "shift above the spectrum", detail="second variation")
         return sigma + 1.0 / float(theta[0]), V[:, 0]
