@@ -247,7 +247,7 @@ def test_patch_scene_runs_the_paper_patch_unless_its_sibling_recorded_it(monkeyp
     ):
         calls.clear()
         row, data = run_scene(scene, done={paper_sibling(scene): stale} if stale else None)
-        assert [c for c in calls] == [(2, None), (1, (0.5, -0.5)), (3, (0.5, -0.5))]
+        assert calls == [(2, None), (1, (0.5, -0.5)), (3, (0.5, -0.5))]
         assert data["Fc_star"] == [1.0, 2.0, 3.0] and row["qp_solves"] == 21 and row["unverified"] == 0
 
 
