@@ -533,9 +533,9 @@ def test_paper_resumes_without_rerunning_saved_scenes(tmp_path, monkeypatch):
     real = paper_run.run_scene
     ran = []
 
-    def counting(scene, limit_s=None):
+    def counting(scene, limit_s=None, done=None):
         ran.append(scene.key)
-        return real(scene, limit_s)
+        return real(scene, limit_s, done)
 
     monkeypatch.setattr(paper_run, "run_scene", counting)
     first = paper.run_paper(tmp_path, workers=1, scenes=scenes[:1])
