@@ -26,10 +26,10 @@ from .paper_scenes import Scene, paper_scenes
 MAX_WORKERS = 2
 # CPU-time limit of one scene in seconds (full run, quick run; paper_run.SCENE_CLOCK; a patch scene
 # twice it, paper_run.scene_limit): a scene over it is recorded with the status "time_limit" and the
-# study goes on.  Each scene's times are in the
-# table (wall_s, cpu_s).  The slowest scenes that ended took 470 s (full) and, on the slower machine
-# of 2026-11-28, 61 s (quick: the square array slanted 60 deg towards 45 deg, 4,349 QPs; the quick
-# limit was 60 s until then, and the quick hexagon at that slant, which once did not end, takes 35 s).
+# study goes on.  Each scene's times are in the table (wall_s, cpu_s).  The slowest scenes that
+# ended took 470 s (full) and, on the slower machine of 2026-11-28, 61 s (quick: the square array
+# slanted 60 deg towards 45 deg, 4,349 QPs; the quick limit was 60 s until then, and the quick
+# hexagon at that slant, which once did not end, takes 35 s).
 SCENE_LIMIT_S = {False: 900.0, True: 120.0}
 # Result columns always present (empty where a scene failed or does not apply).
 RESULT_COLUMNS = ("status", "error", "Fc_star", "delta_c_star", "K_phi_star", "Cf_star", "wall_s", "cpu_s")

@@ -129,7 +129,7 @@ def _paper_patch(scene: Scene, sibling: dict | None) -> dict:
     from .paper_scenes import PAPER_RINGS
 
     if sibling is not None and sibling.get("status") == "ok":
-        if all(c in sibling and sibling[c] is not None for c in SIBLING_COLUMNS):
+        if all(sibling.get(c) is not None for c in SIBLING_COLUMNS):
             return {c: sibling[c] for c in SIBLING_COLUMNS}
     r = run_puncture(_puncture_setup(scene, PAPER_RINGS))
     return {

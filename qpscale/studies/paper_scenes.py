@@ -36,9 +36,9 @@ class Scene:
     study : str
         One of ``STUDIES``.
     kind : {"puncture", "flexure", "patch"}
-        ``patch``: the puncture of the paper's patch (``PAPER_RINGS``) at every vertex, then at
-        its worst vertex on the patches of 1, 2, ..., ``rings`` rings (formulations/puncture.md
-        sec. 7, "The study's patch sequence").
+        ``patch``: the worst vertex of the paper's patch (``PAPER_RINGS``; read from the puncture
+        scene of the same design, ``paper_run.paper_sibling``) on the patches of 1, 2, ...,
+        ``rings`` rings (formulations/puncture.md sec. 7, "The study's patch sequence").
     shape, tiling, slant_deg, slant_dir_deg, gap, thickness, rings
         The design (``Design``); rings = 0 is the isolated scale (puncture only); a patch scene's
         largest patch, more than ``PAPER_RINGS``.
