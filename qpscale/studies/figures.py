@@ -4,7 +4,8 @@ Draws what formulations/puncture.md and formulations/membrane.md define: force-d
 curves in newtons and millimetres (Figs. 3, 11), F_c* against phi_c K_phi*/delta_c* (Fig. 4, the
 isolated-scale estimate of formulations/normalisation.md), normalised puncture resistance by
 interaction mode and slant (Figs. 6a, 9a), displacement fields at failure (Figs. 6b, 7, 9b),
-compliance C_f* (Fig. 12) and the Ashby chart (Fig. 13).  Every number comes from the table.
+compliance C_f* (Fig. 12) and the Ashby chart (Fig. 13, with the patch-size estimates of
+formulations/puncture.md sec. 7).  Every number comes from the table.
 """
 
 from __future__ import annotations

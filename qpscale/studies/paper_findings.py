@@ -2,7 +2,8 @@
 
 Each finding is read from the table of ``paper.run_paper`` with the normalisations of
 formulations/normalisation.md (array over isolated scale of the same geometry; slanted over the same
-design unslanted).  Failed scenes stay out of every number and are counted instead.
+design unslanted); the patch-size rows read the sequences of formulations/puncture.md sec. 7.  Failed
+scenes stay out of every number and are counted instead.
 """
 
 from __future__ import annotations
