@@ -22,7 +22,7 @@ from .events import Rescue
 from .geometry import cross, rotation_matrix, tangent_operator
 from .level import LevelOutcome
 from .level import LevelStatus as LevelStatus  # re-exported: a level's outcome is read with it
-from .qp import IncrementQP, block_diagonal, resolve_tolerance
+from .qp import IncrementQP, block_diagonal, resolve_tolerance, transpose_times
 from .solvers import DEFAULT_SOLVER
 from .tiling import Patch
 
@@ -188,7 +188,8 @@ def assemble_increment(
     indptr[on + 1] = 1
     np.cumsum(indptr, out=indptr)
     A = sp.csc_matrix((a[on], np.zeros(on.size, dtype=np.int32), indptr), shape=(1, n))
-    G = -J.tocsc()
+    G = J.tocsc(copy=True)  # a new matrix, negated in place (``-J`` copied it again: 60 us a call)
+    np.negative(G.data, out=G.data)
     return IncrementQP.assembled(
         _with_diagonal(K, w),
         np.concatenate([K @ x, np.zeros(extra)]),
@@ -291,11 +292,11 @@ def _held(
         Zp, Sp = mirror.plane_block(planes.keys, planes.point, planes.basis, qp.P.data[K.nnz :])
         Z, S = block_diagonal(Zq, Zp), block_diagonal(S, Sp)
     x0 = np.zeros(qp.n)
-    x0[:nq] = -(D.T @ (D @ q.reshape(-1)))
+    x0[:nq] = -transpose_times(D, D @ q.reshape(-1))
     G, h, A, b = qp.rows()
     reduced = IncrementQP.assembled(
         S,
-        Z.T @ (qp.P @ x0 + qp.q),
+        transpose_times(Z, qp.P @ x0 + qp.q),
         G @ Z,
         h - G @ x0,
         A @ Z,
