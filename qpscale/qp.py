@@ -287,15 +287,13 @@ def _qpsolvers_opts(name: str, tol: float) -> dict[str, Any]:
             "eps_duality_gap_rel": 0.0,
         },
         # the KKT systems of held-symmetric paths (face contacts, planes held mirror-symmetric) are
-        # ill-conditioned enough that PIQP's factorisation without refinement ran into NaN; no
-        # Ruiz scaling, as in the direct call (``backend_options``)
+        # ill-conditioned enough that PIQP's factorisation without refinement ran into NaN
         "piqp": {
             "eps_abs": t,
             "eps_rel": 0.0,
             "eps_duality_gap_abs": t,
             "eps_duality_gap_rel": 0.0,
             "iterative_refinement_always_enabled": True,
-            "preconditioner_iter": 0,
         },
         # DAQP's default primal tolerance (1e-6) let a row stay 9.7e-7 violated on the default scene;
         # its default cycle_tol (10 iterations without progress) declared cycling (exit -2) on a
@@ -334,19 +332,13 @@ def backend_options(solver: str, tol: float) -> dict[str, Any]:
         # limit with the dual residual at 10 (formulations table 1).  Up to 1000 iterations: on
         # the hinged planes of slanted arrays its last iterations stagnate at this tolerance (QPs
         # of a slanted 5x5 dart array needed 204-540; at 200 the path stopped), and aiming at
-        # ``tol`` itself instead leaves dq noisy at the step test (more stalled levels).  No Ruiz
-        # scaling (``preconditioner_iter`` 0): our data are in the units of the problem already,
-        # and the scaling hurt most where the plane unknowns' weight is 1e-6 against K's O(1)
-        # (formulations table 1 and sec. 3.2a: a captured slanted dart QP took 170 iterations
-        # scaled and 18 unscaled; the default path's QPs 1.50 s against 1.15 s, flexure's default
-        # scene 56 s against 48 s, the answers the same to 2e-12 in F_c and C_f).
+        # ``tol`` itself instead leaves dq noisy at the step test (more stalled levels).
         return {
             "eps_abs": t,
             "eps_rel": 0.0,
             "eps_duality_gap_abs": t,
             "eps_duality_gap_rel": 0.0,
             "iterative_refinement_always_enabled": True,
-            "preconditioner_iter": 0,
             "max_iter": 1000,
         }
     if solver == "osqp":
