@@ -487,12 +487,15 @@ def smallest_on_null_space(Ks: sp.csc_matrix, G: sp.csc_matrix, C: sp.csr_matrix
             raise SolverFailure("stability", "shift above the spectrum", detail="second variation")
         return sigma + 1.0 / float(theta[0]), V[:, 0]
 
+    def failed() -> SolverFailure:
+        return SolverFailure("stability", "Lanczos did not converge", detail="second variation")
+
     def converged(sigma: float, v0: Array, tolerance: float) -> tuple[float, Array]:
         """``top`` with ARPACK's default restarts: not converging there fails the test."""
         try:
             return top(sigma, v0, tolerance)
         except spla.ArpackNoConvergence as exc:
-            raise SolverFailure("stability", "Lanczos did not converge", detail="second variation") from exc
+            raise failed() from exc
 
     rough, v = converged(floor, start, LANCZOS_ROUGH)
     sigma = floor
@@ -504,7 +507,7 @@ def smallest_on_null_space(Ks: sp.csc_matrix, G: sp.csc_matrix, C: sp.csr_matrix
         except spla.ArpackNoConvergence:
             rough, v = converged(sigma, v, LANCZOS_ROUGH)
     else:
-        raise SolverFailure("stability", "Lanczos did not converge", detail="second variation")
+        raise failed()
     # A Ritz value of a loose run bounds mu_min from above; a larger answer means the last shift
     # passed mu_min (the loose run had not found the top): then the tight run from the safe shift.
     if mu > rough + 1e-9 * (rough - floor):
